@@ -1,0 +1,44 @@
+# ga3ce-prep: the two commands of the README are `make demo` and `make test`.
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+CLI     := $(VENV)/bin/ga3ce-prep
+STAMP   := $(VENV)/.ga3ce-installed
+# 2 cores here: one thread pool per process, sized to the machine.
+THREADS ?= $(shell nproc)
+export OMP_NUM_THREADS ?= $(THREADS)
+export MKL_NUM_THREADS ?= $(THREADS)
+
+DATASET ?= synthetic
+DATA    ?= out/synthetic
+OUT     ?= out/$(DATASET).zarr
+
+.PHONY: setup demo test prep bench-synth bench-prep bench-train bench-objects clean
+
+setup: $(STAMP)
+$(STAMP): pyproject.toml scripts/setup.sh
+	VENV=$(VENV) bash scripts/setup.sh
+	@touch $@
+
+## make demo: set up, then run the main job on the embedded synthetic default.
+demo: setup
+	$(PY) -m ga3ce_prep.demo --out out
+
+## make test: set up, then run the test suite.
+test: setup
+	$(VENV)/bin/pytest -q
+
+## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr]
+prep: setup
+	$(CLI) run --pipeline pipelines/$(DATASET).yaml --data $(DATA) --out $(OUT)
+
+bench-synth: setup
+	$(PY) benchmarks/bench_synth.py
+bench-prep: setup
+	$(PY) benchmarks/bench_prep.py
+bench-train: setup
+	$(PY) benchmarks/bench_train.py
+bench-objects: setup
+	$(PY) benchmarks/bench_objects.py
+
+clean:
+	rm -rf out .pytest_cache

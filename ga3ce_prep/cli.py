@@ -1,0 +1,88 @@
+"""`ga3ce-prep`: the command line. Each command lives in the module of its concept and is imported
+only when it runs, so `ga3ce-prep --help` is instant and never imports torch or Open3D."""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+import click
+
+from . import __version__
+from .errors import Ga3ceError
+
+# name -> (module:attribute, one-line help). Order is the order `--help` lists them in.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("ga3ce_prep.demo:demo", "Run the whole chain on the embedded synthetic world."),
+    "synth": ("ga3ce_prep.synthetic.cli:synth", "Write a synthetic RGB-D dataset in GFIE, CAD-120 or GAFA format."),
+    "run": ("ga3ce_prep.pipeline.cli:run", "Preprocess a dataset into a 3D context store (staged, cached, resumable)."),
+    "info": ("ga3ce_prep.pipeline.cli:info", "Print what a store holds: splits, scenes, objects, provenance, failures."),
+    "show": ("ga3ce_prep.pipeline.cli:show", "Draw one frame's 3D context as a PNG, or write it as a PLY point set."),
+    "export": ("ga3ce_prep.pipeline.cli:export", "Export a store's arrays to HDF5 for other trainers."),
+    "train": ("ga3ce_prep.train.cli:train", "Train the GA3CE 3D gaze transformer on a store."),
+    "eval": ("ga3ce_prep.train.cli:evaluate", "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
+    "ablate": ("ga3ce_prep.train.cli:ablate", "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
+    "export-mobilesam": ("ga3ce_prep.estimators.cli:export_mobilesam",
+                         "Export a trained MobileSAM checkpoint to the ONNX files the mobilesam backend reads."),
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose commands are imported on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        target, _ = COMMANDS[name]
+        module, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ModuleNotFoundError, AttributeError) as e:
+            if isinstance(e, ModuleNotFoundError) and e.name and not module.startswith(e.name):
+                raise  # a real missing dependency: let it show
+            raise click.ClickException(f"command {name!r} is not available in this build ({target})")
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, help_) for name, (_, help_) in COMMANDS.items()])
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="ga3ce-prep")
+def cli() -> None:
+    """Offline 3D-context preprocessing and a GA3CE trainer for unconstrained 3D gaze estimation.
+
+    \b
+    Typical use:
+      ga3ce-prep synth --format gfie --out data/synth        # or bring GFIE, CAD-120, GAFA
+      ga3ce-prep run --pipeline pipelines/synthetic.yaml --data data/synth --out synth.zarr
+      ga3ce-prep train --store synth.zarr --out runs/full
+      ga3ce-prep eval --store synth.zarr --checkpoint runs/full/best.pt
+
+    Units: metres; camera frame x right, y down, z forward. Run `ga3ce-prep COMMAND --help` for
+    each command's options.
+    """
+
+
+def main() -> None:
+    """Entry point: runs the CLI and prints ga3ce-prep's own errors as one clear line."""
+    try:
+        cli.main(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except Ga3ceError as e:
+        click.secho(f"error: {e}", fg="red", err=True)
+        if os.environ.get("GA3CE_DEBUG"):
+            raise
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

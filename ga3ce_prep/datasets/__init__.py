@@ -1,0 +1,31 @@
+"""Dataset adapters: one module per on-disk format, each yielding `FrameRef`s.
+
+Adapters validate a dataset's structure (layout, annotation columns) and raise DatasetFormatError
+naming the file, the field and the fix before any work starts; per-frame problems surface later,
+when a stage loads the frame. Adapters never run a model.
+"""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from .base import DatasetAdapter
+
+# name -> "module:class"
+ADAPTERS: dict[str, str] = {
+    "gfie": "ga3ce_prep.datasets.gfie:GFIEAdapter",
+    "cad120": "ga3ce_prep.datasets.cad120:CAD120Adapter",
+    "gafa": "ga3ce_prep.datasets.gafa:GAFAAdapter",
+    "folder": "ga3ce_prep.datasets.folder:FolderAdapter",
+}
+
+
+def open_dataset(name: str, root: str | Path, **options) -> DatasetAdapter:
+    """The adapter `name` over the dataset at `root` (options are adapter-specific)."""
+    if name not in ADAPTERS:
+        raise KeyError(f"unknown dataset format {name!r}; known: {', '.join(ADAPTERS)}")
+    module, cls = ADAPTERS[name].split(":")
+    return getattr(importlib.import_module(module), cls)(root, **options)
+
+
+__all__ = ["ADAPTERS", "DatasetAdapter", "open_dataset"]

@@ -1,0 +1,90 @@
+"""`FrameRef`: one frame as a dataset adapter describes it, and the loaders of its image and depth.
+
+Adapters yield FrameRefs (paths and annotations, nothing computed); the pipeline's stages load
+pixels through `load_rgb` / `load_depth` so every format's quirks (NaN holes, millimetre PNGs,
+truncated files) are handled in one place.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from .errors import FrameError
+
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+
+
+def nan3() -> np.ndarray:
+    """A (3,) float32 NaN vector: the value of an unknown 3D annotation."""
+    return np.full(3, np.nan, np.float32)
+
+
+@dataclass(eq=False)
+class FrameRef:
+    """One dataset frame: where its pixels are and what the format annotates.
+
+    Units: pixels for boxes and 2D points; metres, camera frame (x right, y down, z forward) for
+    3D points; unknown values are NaN. `id` is stable across runs and unique in the dataset.
+    """
+
+    id: str                      # e.g. "train/scene3/0012" (GFIE), "D1S1A001/17" (CAD-120)
+    split: str                   # one of SPLITS
+    scene: str                   # the unit splits are made by (GFIE scene, GAFA session, ...)
+    image_path: Path
+    K: np.ndarray                # (3, 3) float64 intrinsics at the image resolution
+    image_size: tuple[int, int]  # (W, H) pixels
+    head_box: np.ndarray         # (4,) float32 x1, y1, x2, y2 pixels
+    depth_path: Path | None = None
+    depth_scale: float = 1.0     # metres per stored depth unit (GFIE .npy 1.0, CAD-120 PNG 0.001)
+    body_box: np.ndarray = field(default_factory=lambda: np.full(4, np.nan, np.float32))
+    eye: np.ndarray = field(default_factory=nan3)          # (3,) 3D gaze origin
+    gaze_target: np.ndarray = field(default_factory=nan3)  # (3,) 3D gaze target
+    gaze: np.ndarray = field(default_factory=nan3)         # (3,) unit gaze direction
+    gaze_2d: np.ndarray = field(default_factory=lambda: np.full(2, np.nan, np.float32))  # (2,) px
+    sequence: str = ""           # temporal sequence (GAFA camera folder); "" if none
+    index: int = 0               # raw frame number within `sequence`
+    keypoints_2d: np.ndarray | None = None  # (25, 3) OpenPose BODY_25 u, v, confidence (GAFA)
+
+
+def load_rgb(path: str | Path) -> np.ndarray:
+    """Read an image file as (H, W, 3) uint8 RGB. Raises FrameError naming the file if it is
+    missing, unreadable or truncated (Pillow refuses truncated JPEG/PNG data)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError(f"image file not found: {path}")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            return np.asarray(im.convert("RGB"))
+    except (OSError, SyntaxError, ValueError) as e:
+        raise FrameError(f"cannot decode image {path}: {e}; re-extract or replace the file") from e
+
+
+def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
+    """Read a depth map as (H, W) float32 metres, 0 = unknown.
+
+    `.npy` float arrays (GFIE: NaN holes) are read with allow_pickle=False; 16-bit PNGs (CAD-120:
+    millimetres, 0 invalid) with OpenCV. `scale` converts stored units to metres. Non-finite and
+    negative values become 0.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError(f"depth file not found: {path}")
+    if path.suffix == ".npy":
+        try:
+            d = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            raise FrameError(f"cannot read depth {path}: {e}") from e
+    else:
+        d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if d is None:
+            raise FrameError(f"cannot decode depth image {path}: missing, truncated or not an image")
+    if d.ndim != 2:
+        raise FrameError(f"depth {path} has shape {d.shape}; expected a single-channel (H, W) map")
+    d = d.astype(np.float32) * np.float32(scale)
+    d[~np.isfinite(d) | (d < 0)] = 0.0
+    return d

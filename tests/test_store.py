@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+import zarr
+
+from ga3ce_prep.errors import StoreError
+from ga3ce_prep.store import SCHEMA_VERSION, StoreWriter, open_store
+
+ATTRS = {"package_version": "0.1.0", "dataset": {"name": "gfie", "root": "/data"},
+         "pipeline": {"file": "p.yaml", "sha256": "0" * 64}, "stages": {"depth": {"backend": "sensor"}}}
+
+
+def _block(rng, n, start):
+    counts = rng.integers(0, 5, n)
+    frames = {
+        "id": [f"f{start + i}" for i in range(n)], "split": rng.integers(0, 3, n),
+        "scene": np.zeros(n), "K": np.tile(np.eye(3), (n, 1, 1)), "image_size": np.tile([640, 480], (n, 1)),
+        "head_box": rng.random((n, 4)), "body_box": rng.random((n, 4)), "head_pos": rng.random((n, 3)),
+        "pose": rng.random((n, 30, 3)), "view": rng.random((n, 3)), "gaze": rng.random((n, 3)),
+        "eye": rng.random((n, 3)), "gaze_target": rng.random((n, 3)), "obj_count": counts,
+    }
+    m = int(counts.sum())
+    objects = {"xyz": rng.random((m, 3)), "area": rng.integers(1, 100, m), "score": rng.random(m)}
+    return frames, objects
+
+
+def test_store_round_trip_csr(tmp_path):
+    rng = np.random.default_rng(0)
+    w = StoreWriter(tmp_path / "s.zarr")
+    blocks = [_block(rng, n, s) for n, s in [(7, 0), (5000, 7), (3, 5007)]]
+    for f, o in blocks:
+        w.append_frames(f, o)
+    w.append_failures({"frame_id": ["f3"], "stage": ["head"], "error": ["FrameError"],
+                       "message": ["no valid depth"], "action": ["dropped"]})
+    w.close(ATTRS)
+    s = open_store(tmp_path / "s.zarr")
+    assert len(s) == 5010 and s.attrs["schema_version"] == SCHEMA_VERSION
+    all_xyz = np.concatenate([o["xyz"] for _, o in blocks]).astype(np.float32)
+    np.testing.assert_array_equal(s.objects["xyz"], all_xyz)
+    i = 7 + 123  # a frame of the second block
+    f, o = blocks[1]
+    start = int(f["obj_count"][:123].sum())
+    np.testing.assert_array_equal(s.objects_of(i), o["xyz"][start:start + f["obj_count"][123]].astype(np.float32))
+    assert s.frames["id"][i] == "f130"
+    assert s.failures["stage"].tolist() == ["head"]
+    assert s.split_names == ["train", "val", "test"]
+    assert len(s.indices("test")) == int((s.frames["split"] == 2).sum())
+
+
+def test_store_refuses_other_major_version(tmp_path):
+    w = StoreWriter(tmp_path / "s.zarr")
+    w.close(ATTRS)
+    zarr.open_group(str(tmp_path / "s.zarr"), mode="r+").attrs["schema_version"] = "2.0"
+    with pytest.raises(StoreError, match="schema 2.0"):
+        open_store(tmp_path / "s.zarr")
+
+
+def test_store_attrs_validated(tmp_path):
+    w = StoreWriter(tmp_path / "s.zarr")
+    with pytest.raises(StoreError, match="pipeline"):
+        w.close({**ATTRS, "pipeline": {"file": "p.yaml"}})
+
+
+def test_missing_store_message(tmp_path):
+    with pytest.raises(StoreError, match="ga3ce-prep run"):
+        open_store(tmp_path / "nope.zarr")
