@@ -1,19 +1,75 @@
 """CAD-120 gaze evaluation set (nkuhzx/GFIE's CAD-120 release): research/gfie.md §1.2.
 
-    CAD120_dataset/rgb/<dataset_id>/RGB_<n>.png      n not zero-padded
-    CAD120_dataset/depth/<dataset_id>/Depth_<n>.png  uint16 millimetres, 0 = invalid
-    CAD120_dataset/CameraKinect.npy                  [fx, fy, cx, cy]
-    CAD120_dataset/annotation.txt                    CSV with a header; boxes and 2D gaze normalised
+An evaluation set: every frame is in the "test" split (GA3CE trains on GFIE and tests here).
+Boxes and the 2D gaze point are stored normalised to [0, 1]; the adapter converts them to pixels
+with each sequence's image size. eye_x/eye_y are never used (their convention is unknown).
 """
 from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..frames import FrameRef
+from .base import DatasetAdapter, first_image_size, float_column, intrinsics_from_fxfycxcy, read_csv_columns
 
 COLUMNS: tuple[str, ...] = (
     "dataset_id", "frame_index", "x_initial", "y_initial", "w", "h", "eye_x", "eye_y",
     "eye_X", "eye_Y", "eye_Z", "gaze_x", "gaze_y", "gaze_X", "gaze_Y", "gaze_Z",
 )
+REQUIRED = tuple(c for c in COLUMNS if c not in ("eye_x", "eye_y"))
 DEPTH_SCALE = 0.001  # PNG millimetres -> metres
+LAYOUT = """    CAD120_dataset/rgb/<dataset_id>/RGB_<n>.png      n not zero-padded
+    CAD120_dataset/depth/<dataset_id>/Depth_<n>.png  uint16 millimetres, 0 = invalid
+    CAD120_dataset/CameraKinect.npy                  [fx, fy, cx, cy]
+    CAD120_dataset/annotation.txt                    CSV with a header; boxes and 2D gaze normalised"""
 
 
 def frame_id(dataset_id: str, frame_index: int) -> str:
     """Stable frame id, e.g. "D1S1A001/17"."""
     return f"{dataset_id}/{int(frame_index)}"
+
+
+class CAD120Adapter(DatasetAdapter):
+    """CAD-120: one CSV, one K, uint16 millimetre PNG depth."""
+
+    name = "cad120"
+    layout = LAYOUT
+
+    def __init__(self, root: str | Path, split: str = "test"):
+        super().__init__(root)
+        self.split = split
+        self.K = intrinsics_from_fxfycxcy(self.require("CameraKinect.npy", "camera intrinsics"))
+        self.require("rgb", "RGB frames")
+        self.require("depth", "depth maps")
+        self.annotation = self.require("annotation.txt", "annotations")
+        self._cols, self._n = read_csv_columns(self.annotation, REQUIRED)
+
+    def frames(self) -> Iterator[FrameRef]:
+        cols, path = self._cols, self.annotation
+        f = {c: float_column(cols, c, path) for c in REQUIRED if c not in ("dataset_id",)}
+        eye = np.stack([f["eye_X"], f["eye_Y"], f["eye_Z"]], 1)
+        target = np.stack([f["gaze_X"], f["gaze_Y"], f["gaze_Z"]], 1)
+        d = target - eye
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gaze = np.where(norm > 0, d / norm, np.nan)
+        sizes: dict[str, tuple[int, int]] = {}
+        for i in range(self._n):
+            did, n = cols["dataset_id"][i], int(f["frame_index"][i])
+            rgb = self.root / "rgb" / did / f"RGB_{n}.png"
+            if did not in sizes:
+                sizes[did] = first_image_size([rgb, *sorted(rgb.parent.glob("RGB_*.png"))[:3]])
+            W, H = sizes[did]
+            x, y, w, h = f["x_initial"][i], f["y_initial"][i], f["w"][i], f["h"][i]
+            yield FrameRef(
+                id=frame_id(did, n), split=self.split, scene=did, image_path=rgb, K=self.K,
+                image_size=(W, H),
+                head_box=(np.array([x, y, x + w, y + h]) * [W, H, W, H]).astype(np.float32),
+                depth_path=self.root / "depth" / did / f"Depth_{n}.png", depth_scale=DEPTH_SCALE,
+                eye=eye[i].astype(np.float32), gaze_target=target[i].astype(np.float32),
+                gaze=gaze[i].astype(np.float32),
+                gaze_2d=np.array([f["gaze_x"][i] * W, f["gaze_y"][i] * H], np.float32),
+                sequence=did, index=n,
+            )

@@ -1,14 +1,33 @@
 """GAFA raw data (kyotovision-public/dynamic-3d-gaze-from-afar): research/gafa.md §1-§2.
 
-    raw_data/<scene>/<session>/<camera>/<frame:06d>.jpg
-    raw_data/<scene>/<session>/<camera>.pkl   keypoints2d (N,25,3) BODY_25 px, gaze/head/chest
-                                              direction (+ position), R_cam2w, t_cam2w
-    raw_data/intrinsics.npz                   cam_mat (3,3), dist_coeffs (1,12)
-
 The split is by session and fixed (eval.py / train.py). GAFA's own validation set is the shuffled
-tail of train (unseeded); ours is deterministic: the two sessions in VAL_SESSIONS.
+tail of train (unseeded); ours is deterministic: the two sessions in VAL_SESSIONS. GAFA has no
+depth: a pipeline over it needs a depth estimator (or, for the synthetic world, the oracle).
+
+Per frame the adapter gives: the head box and body box computed from the OpenPose keypoints the way
+GAFA's preprocessing does (head: joints nose, neck, eyes, ears expanded up by 85% and squared;
+body: all joints expanded and cut to 3:4), the gaze direction (`gaze.direction`), and as `eye` the
+annotated 3D head position (`head.position`; GAFA has no eye point). Frames whose six head joints
+are all undetected are skipped, as GAFA's preprocessing skips them.
+
+Intrinsics: one K for every camera (`intrinsics.npz` cam_mat). For portrait-stored cameras the
+repository does not say how K applies; with `k_mode="auto"` the adapter reprojects each camera's
+head positions with K and with K transposed (fx<->fy, cx<->cy) and keeps the one that lands on
+the head keypoints. Distortion coefficients are not applied (GAFA's own code never applies them).
 """
 from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetFormatError
+from ..frames import FrameRef
+from ..geometry import normalize, project
+from ..skeleton import BODY25_HEAD
+from .base import DatasetAdapter, first_image_size, log
+from .safe_pickle import load_pickle
 
 SCENES: tuple[str, ...] = ("library", "lab", "kitchen", "living_room", "courtyard")
 TEST_SESSIONS: tuple[str, ...] = (
@@ -27,6 +46,12 @@ SESSION_ORDER: tuple[str, ...] = (
     "courtyard/005", "library/1028_2", "courtyard/003", "library/1028_5", "lab/1014_1", "living_room/005",
 )
 WINDOW = 7  # GAFA's temporal window (frames)
+PKL_KEYS: tuple[str, ...] = ("keypoints2d", "gaze", "head", "chest", "R_cam2w", "t_cam2w")
+LAYOUT = """    raw_data/<scene>/<session>/<camera>/<frame:06d>.jpg
+    raw_data/<scene>/<session>/<camera>.pkl   keypoints2d (N,25,>=2) BODY_25 px; gaze/head/chest
+                                              {direction (N,3), position (N,3)}; R_cam2w; t_cam2w
+    raw_data/intrinsics.npz                   cam_mat (3,3), dist_coeffs (1,12)
+    scenes: library, lab, kitchen, living_room, courtyard"""
 
 
 def session_split(session: str) -> str:
@@ -43,3 +68,145 @@ def session_split(session: str) -> str:
 def frame_id(session: str, camera: str, frame: int) -> str:
     """Stable frame id, e.g. "library/1029_2/Camera1_0/000123"."""
     return f"{session}/{camera}/{int(frame):06d}"
+
+
+def _keypoint_boxes(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarray:
+    """(N, 4) u, v, w, h boxes from the min/max of each frame's detected (non-zero) keypoints;
+    NaN where none is detected. kp: (N, 25, >=2) pixels, 0 = undetected."""
+    uv = kp[:, joints, :2].astype(np.float64)
+    det = np.any(uv != 0, axis=-1)
+    lo = np.where(det[..., None], uv, np.inf).min(axis=1)
+    hi = np.where(det[..., None], uv, -np.inf).max(axis=1)
+    box = np.concatenate([lo, hi - lo], axis=1)
+    box[~det.any(axis=1)] = np.nan
+    return box
+
+
+def _expand(box: np.ndarray, t: float, b: float, l: float, r: float) -> np.ndarray:
+    """GAFA's ExpandBB on (N, 4) u, v, w, h: pads int(frac * w) left/right, int(frac * h) top/bottom."""
+    u, v, w, h = box.T
+    pl, pr = np.trunc(l * w), np.trunc(r * w)
+    pt, pb = np.trunc(t * h), np.trunc(b * h)
+    return np.stack([u - pl, v - pt, w + pl + pr, h + pt + pb], axis=1)
+
+
+def _square(box: np.ndarray) -> np.ndarray:
+    """GAFA's ExpandBBRect: a square of side max(w, h), centred on the shorter axis."""
+    u, v, w, h = box.T
+    side = np.maximum(w, h)
+    return np.stack([u - np.floor((side - w) / 2), v - np.floor((side - h) / 2), side, side], axis=1)
+
+
+def head_boxes(kp: np.ndarray) -> np.ndarray:
+    """(N, 4) x1, y1, x2, y2 head boxes from BODY_25 keypoints as GAFA's head_transform builds them."""
+    box = _square(_expand(_keypoint_boxes(kp, BODY25_HEAD), t=0.85, b=-0.2, l=0.1, r=0.1))
+    return np.concatenate([box[:, :2], box[:, :2] + box[:, 2:]], axis=1)
+
+
+def body_boxes(kp: np.ndarray) -> np.ndarray:
+    """(N, 4) x1, y1, x2, y2 body boxes as GAFA's body_transform builds them (square, then 3:4)."""
+    box = _square(_expand(_keypoint_boxes(kp, slice(None)), t=0.15, b=0.05, l=0.2, r=0.2))
+    u, v, side, _ = box.T
+    w = np.trunc(side * 192 / 256)
+    u = u + np.floor((side - w) / 2)
+    return np.stack([u, v, u + w, v + side], axis=1)
+
+
+def _pick_k(K: np.ndarray, head_pos: np.ndarray, kp: np.ndarray, where: Path) -> np.ndarray:
+    """K or its transpose, whichever projects the head positions closer to the head keypoints."""
+    KT = np.array([[K[1, 1], 0, K[1, 2]], [0, K[0, 0], K[0, 2]], [0, 0, 1]])
+    head_uv = kp[:, BODY25_HEAD, :2].astype(np.float64)
+    det = np.any(head_uv != 0, axis=-1)
+    centre = (head_uv * det[..., None]).sum(1) / np.maximum(det.sum(1, keepdims=True), 1)
+    ok = det.any(1) & np.isfinite(head_pos).all(1)
+    if not ok.any():
+        return K
+    errs = [float(np.nanmedian(np.linalg.norm(project(head_pos[ok], k) - centre[ok], axis=1))) for k in (K, KT)]
+    if errs[1] < errs[0]:
+        log.info("GAFA %s: K transposed reprojects the head %.0f px closer; using it", where, errs[0] - errs[1])
+        return KT
+    return K
+
+
+class GAFAAdapter(DatasetAdapter):
+    """GAFA raw: per-camera pickles of BODY_25 keypoints and camera-frame gaze/head/chest vectors."""
+
+    name = "gafa"
+    layout = LAYOUT
+
+    def __init__(self, root: str | Path, k_mode: str = "auto", sessions: tuple[str, ...] | None = None):
+        super().__init__(root)
+        if (self.root / "raw_data").is_dir():
+            self.root = self.root / "raw_data"
+        intr = self.require("intrinsics.npz", "shared camera intrinsics")
+        try:
+            with np.load(intr, allow_pickle=False) as z:
+                self.K = np.asarray(z["cam_mat"], np.float64)
+        except (KeyError, OSError, ValueError) as e:
+            raise DatasetFormatError(f"{intr}: cannot read cam_mat ({e})") from e
+        if self.K.shape != (3, 3):
+            raise DatasetFormatError(f"{intr}: cam_mat has shape {self.K.shape}, expected (3, 3)")
+        if k_mode not in ("auto", "as_is"):
+            raise ValueError(f"k_mode must be auto or as_is, not {k_mode!r}")
+        self.k_mode = k_mode
+        self.cameras: list[tuple[str, Path]] = []  # (session, pkl path)
+        unknown = []
+        for scene in SCENES:
+            for sdir in sorted(p for p in (self.root / scene).glob("*") if p.is_dir()):
+                session = f"{scene}/{sdir.name}"
+                if sessions is not None and session not in sessions:
+                    continue
+                try:
+                    session_split(session)
+                except KeyError:
+                    unknown.append(session)
+                    continue
+                self.cameras += [(session, p) for p in sorted(sdir.glob("*.pkl"))]
+        if unknown:
+            log.warning("GAFA: skipping sessions outside the published split: %s", ", ".join(unknown))
+        if not self.cameras:
+            raise DatasetFormatError(f"gafa: no <scene>/<session>/<camera>.pkl under {self.root}. "
+                                     f"Expected layout:\n{LAYOUT}")
+
+    def _load_camera(self, pkl: Path) -> dict[str, np.ndarray]:
+        d = load_pickle(pkl)
+        missing = [k for k in PKL_KEYS if k not in d]
+        if missing:
+            raise DatasetFormatError(f"{pkl}: missing key(s) {missing}; found {sorted(d)}")
+        kp = np.asarray(d["keypoints2d"], np.float32)
+        if kp.ndim != 3 or kp.shape[1] != 25 or kp.shape[2] < 2:
+            raise DatasetFormatError(f"{pkl}: keypoints2d has shape {kp.shape}, expected (N, 25, >=2)")
+        if kp.shape[2] == 2:  # no confidence column: detected joints get confidence 1
+            kp = np.concatenate([kp, np.any(kp != 0, axis=-1, keepdims=True).astype(np.float32)], axis=-1)
+        n = len(kp)
+        out = {"keypoints2d": kp[:, :, :3]}
+        for key, sub in (("gaze", "direction"), ("head", "direction"), ("head", "position")):
+            try:
+                a = np.asarray(d[key][sub], np.float64)
+            except (KeyError, TypeError, IndexError):
+                raise DatasetFormatError(f"{pkl}: {key}[{sub!r}] missing") from None
+            if a.shape != (n, 3):
+                raise DatasetFormatError(f"{pkl}: {key}[{sub!r}] has shape {a.shape}, expected ({n}, 3)")
+            out[f"{key}_{sub}"] = a
+        return out
+
+    def frames(self) -> Iterator[FrameRef]:
+        for session, pkl in self.cameras:
+            camera = pkl.stem
+            cam = self._load_camera(pkl)
+            kp = cam["keypoints2d"]
+            valid = np.any(kp[:, BODY25_HEAD, :2] != 0, axis=(1, 2))
+            hb, bb = head_boxes(kp), body_boxes(kp)
+            gaze = normalize(cam["gaze_direction"])
+            folder = pkl.with_suffix("")
+            K = _pick_k(self.K, cam["head_position"], kp, pkl) if self.k_mode == "auto" else self.K
+            size = first_image_size([folder / f"{i:06d}.jpg" for i in np.flatnonzero(valid)[:3]])
+            split = session_split(session)
+            for i in np.flatnonzero(valid).tolist():
+                yield FrameRef(
+                    id=frame_id(session, camera, i), split=split, scene=session,
+                    image_path=folder / f"{i:06d}.jpg", K=K, image_size=size,
+                    head_box=hb[i].astype(np.float32), body_box=bb[i].astype(np.float32),
+                    eye=cam["head_position"][i].astype(np.float32), gaze=gaze[i].astype(np.float32),
+                    sequence=f"{session}/{camera}", index=i, keypoints_2d=kp[i],
+                )
