@@ -1,0 +1,137 @@
+"""GA3CE: the full model from the store's per-frame inputs to the gaze direction g.
+
+    v, P_pose, P_object, t_object --egocentric_transform--> v', P'_pose, P'_obj
+    E_view = gamma(v') (106),  E_pose = D3 per joint (15 x 10),  E_subject = E_view ++ E_pose (256)
+    F_object = D3(P'_obj) (256 each), after a learned null token
+    g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
+
+`ModelConfig` holds every architectural choice and ablation switch; it is a plain dataclass saved
+in checkpoints as a dict. Units: metres, camera frame (x right, y down, z forward).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..skeleton import GA3CE_JOINTS, HEAD_WIDTH_PAIR
+from .egocentric import egocentric_transform
+from .encoding import ENCODINGS, PointEncoding
+from .rotation import ROTATIONS
+from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
+
+
+@dataclass
+class ModelConfig:
+    """Architecture, encodings and ablation switches of GA3CE (paper values as defaults).
+
+    rotation: "cyclotorsion" | "axis_angle" (no cyclotorsion) | "none" (no egocentric rotation).
+    encoding: "d3" | "standard" (no D3: gamma of the point itself, same widths).
+    use_pose / use_objects: False feeds the learned missing-joint embeddings / the null token alone.
+    use_context: False is "appearance only": g = v, no parameters are used.
+    cone_bias: add the gaze-cone bias to cross-attention (scaled by cone_bias_scale; 1 = paper).
+    Fourier scales (cycles per unit): view_scale and direction_scale per unit-vector component,
+    pose_distance_scale / pose_position_scale per head width, object_* per metre.
+    """
+
+    rotation: str = "cyclotorsion"
+    encoding: str = "d3"
+    use_pose: bool = True
+    use_objects: bool = True
+    use_context: bool = True
+    cone_bias: bool = True
+    cone_bias_scale: float = 1.0
+    d_model: int = 256
+    n_heads: int = 2
+    dim_feedforward: int = 512
+    num_encoder_layers: int = 3
+    num_decoder_layers: int = 3
+    dropout: float = 0.1
+    head_hidden: int = 512
+    view_width: int = 106
+    joint_width: int = 10
+    joint_dir_width: int = 6
+    object_dir_width: int = 128
+    view_scale: float = 1.0
+    direction_scale: float = 1.0
+    pose_distance_scale: float = 0.05
+    object_distance_scale: float = 0.3
+    pose_position_scale: float = 0.1
+    object_position_scale: float = 0.3
+    head_width_pair: tuple[int, int] = HEAD_WIDTH_PAIR
+    fourier_seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list
+        if self.rotation not in ROTATIONS:
+            raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
+        subject = self.view_width + len(GA3CE_JOINTS) * self.joint_width
+        if subject != self.d_model:
+            raise ValueError(f"E_subject width {self.view_width} + {len(GA3CE_JOINTS)} x "
+                             f"{self.joint_width} = {subject} must equal d_model {self.d_model}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["head_width_pair"] = list(self.head_width_pair)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "ModelConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown model config keys {sorted(unknown)}")
+        return cls(**d)
+
+
+class GA3CE(nn.Module):
+    """The GA3CE gaze estimator.
+
+    forward(view (B,3) unit, pose (B,30,3) NaN = missing, head_pos (B,3), objects (B,S,3),
+    mask (B,S) bool True = real object) -> g (B,3) unit gaze direction, camera frame.
+    """
+
+    def __init__(self, config: ModelConfig | None = None):
+        super().__init__()
+        self.config = c = config or ModelConfig()
+        if not c.use_context:
+            return
+        gen = torch.Generator().manual_seed(c.fourier_seed)
+        self.view_encoding = PointEncoding("standard", c.view_width, 0, 0.0, 0.0, c.view_scale, gen)
+        self.pose_encoding = PointEncoding(c.encoding, c.joint_width, c.joint_dir_width, c.direction_scale,
+                                           c.pose_distance_scale, c.pose_position_scale, gen)
+        self.object_encoding = PointEncoding(c.encoding, c.d_model, c.object_dir_width, c.direction_scale,
+                                             c.object_distance_scale, c.object_position_scale, gen)
+        self.missing_joint = nn.Parameter(0.02 * torch.randn(len(GA3CE_JOINTS), c.joint_width, generator=gen))
+        self.transformer = GazeTransformer(c.d_model, c.n_heads, c.dim_feedforward,
+                                           c.num_encoder_layers, c.num_decoder_layers, c.dropout)
+        self.head = MLPHead(c.d_model, c.head_hidden)
+
+    def subject_embedding(self, view_ego: torch.Tensor, pose_ego: torch.Tensor,
+                          joint_valid: torch.Tensor) -> torch.Tensor:
+        """E_subject (B, 256) = gamma(v') ++ flatten(E_pose); invalid joints get the learned
+        missing-joint embedding (all joints when use_pose is off)."""
+        e_pose = self.pose_encoding(pose_ego)                              # (B, 15, 10)
+        valid = joint_valid if self.config.use_pose else torch.zeros_like(joint_valid)
+        e_pose = torch.where(valid[..., None], e_pose, self.missing_joint.expand_as(e_pose))
+        return torch.cat([self.view_encoding(view_ego), e_pose.flatten(1)], dim=-1)
+
+    def forward(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
+                objects: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        c = self.config
+        view = nn.functional.normalize(view, dim=-1)
+        if not c.use_context:
+            return view
+        if not c.use_objects:
+            objects, mask = objects[:, :0], mask[:, :0]
+        ctx = egocentric_transform(view, pose, objects, head_pos, c.rotation, c.head_width_pair)
+        subject = self.subject_embedding(ctx.view, ctx.pose, ctx.joint_valid)
+        tokens = self.object_encoding(ctx.objects)
+        bias = (gaze_cone_bias(ctx.view, ctx.objects, mask, c.n_heads, c.cone_bias_scale)
+                if c.cone_bias else None)
+        g_prime = self.head(self.transformer(subject, tokens, mask, bias))
+        return nn.functional.normalize(torch.einsum("bji,bj->bi", ctx.R, g_prime) + view, dim=-1, eps=1e-9)

@@ -1,0 +1,75 @@
+"""The 3D gaze transformer and the MLP head (DESIGN.md §3).
+
+An nn.Transformer (d_model 256, 2 heads, feed-forward 512, 3 encoder and 3 decoder layers, PyTorch
+defaults otherwise) whose encoder reads the object tokens and whose decoder reads one target
+token, the subject embedding E_subject, against the encoded objects. Cross-attention gets an
+additive per-object bias, the gaze-cone bias: cos(v, direction of the object from the head).
+
+A learned null object token sits first in the encoder input and is never masked: a frame with no
+objects (or the "no objects" ablation) attends to it alone, and no attention row is ever fully
+masked (which would give NaN through the softmax).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def gaze_cone_bias(view: torch.Tensor, objects_rel: torch.Tensor, mask: torch.Tensor,
+                   n_heads: int, scale: float = 1.0) -> torch.Tensor:
+    """The cross-attention bias of the decoder's single query over [null token, objects].
+
+    view: (B, 3) unit view prior. objects_rel: (B, S, 3) objects minus the head position (any frame
+    in which `view` is expressed). mask: (B, S) bool, True = real object. Returns a float
+    memory_mask (B * n_heads, 1, 1 + S): `scale` * cos(v, object direction) for real objects, 0 for
+    the null token, -inf for padding.
+    """
+    B, S, _ = objects_rel.shape
+    cos = torch.einsum("bsk,bk->bs", nn.functional.normalize(objects_rel, dim=-1, eps=1e-9), view)
+    bias = torch.where(mask, scale * cos, torch.full_like(cos, float("-inf")))
+    bias = torch.cat([bias.new_zeros(B, 1), bias], dim=1)             # null token: 0
+    return bias.repeat_interleave(n_heads, dim=0)[:, None, :]
+
+
+class MLPHead(nn.Module):
+    """GA3CE's output head: d_model -> hidden -> 3 with ReLU, giving g' in the egocentric frame."""
+
+    def __init__(self, d_model: int = 256, hidden: int = 512):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(d_model, hidden), nn.ReLU(), nn.Linear(hidden, 3))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x (B, d_model) -> g' (B, 3), unnormalised."""
+        return self.net(x)
+
+
+class GazeTransformer(nn.Module):
+    """Encoder over [null token, objects], decoder with E_subject as its only target token.
+
+    forward(subject (B, d), objects (B, S, d), mask (B, S) bool True = real, bias (B*heads, 1, 1+S)
+    float or None) -> (B, d), the decoder output for the subject token.
+    """
+
+    def __init__(self, d_model: int = 256, n_heads: int = 2, dim_feedforward: int = 512,
+                 num_encoder_layers: int = 3, num_decoder_layers: int = 3, dropout: float = 0.1):
+        super().__init__()
+        self.n_heads = n_heads
+        self.null_token = nn.Parameter(torch.zeros(1, 1, d_model))
+        nn.init.normal_(self.null_token, std=0.02)
+        self.transformer = nn.Transformer(
+            d_model=d_model, nhead=n_heads, num_encoder_layers=num_encoder_layers,
+            num_decoder_layers=num_decoder_layers, dim_feedforward=dim_feedforward,
+            dropout=dropout, batch_first=True)
+        # plain padded tensors: the prototype nested-tensor path changes nothing but speed and warns
+        self.transformer.encoder.use_nested_tensor = False
+
+    def forward(self, subject: torch.Tensor, objects: torch.Tensor, mask: torch.Tensor,
+                bias: torch.Tensor | None) -> torch.Tensor:
+        B = subject.shape[0]
+        src = torch.cat([self.null_token.expand(B, 1, -1), objects], dim=1)
+        pad = torch.cat([mask.new_zeros(B, 1), ~mask], dim=1)           # True = ignore
+        if bias is None:  # padding still has to be masked in cross-attention
+            bias = torch.zeros(pad.shape, dtype=src.dtype, device=src.device).masked_fill(pad, float("-inf"))
+            bias = bias.repeat_interleave(self.n_heads, dim=0)[:, None, :]
+        out = self.transformer(src, subject[:, None, :], src_key_padding_mask=pad, memory_mask=bias)
+        return out[:, 0]
