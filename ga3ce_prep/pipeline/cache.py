@@ -1,0 +1,127 @@
+"""The stage cache: one entry per stage and shard, written atomically, named by its key.
+
+    <work>/cache/<stage>/<key[:2]>/<key>.npz
+
+A key is the SHA-256 of the stage's backend, backend version, parameters, model files' SHA-256,
+data files' identity, and its upstream keys (the input stage's key hashes the shard's frames and
+their files' identity: path, size, modification time). So a changed parameter changes that
+stage's key and its dependents' keys only; everything else is found again. An entry is written to
+a temporary file in the same directory, fsynced and renamed into place (then the directory is
+fsynced), so a killed run never leaves a half-written entry under a real key; an unreadable entry
+(e.g. a full disk) is treated as missing and recomputed.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _canon(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _canon(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_canon(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return {"dtype": str(obj.dtype), "shape": list(obj.shape),
+                "sha": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest()}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, float):
+        return repr(obj)  # exact, and NaN-safe
+    return obj
+
+
+def stable_hash(obj: Any) -> str:
+    """SHA-256 hex of a canonical JSON form of obj (dicts sorted, arrays by content, floats exact)."""
+    return hashlib.sha256(json.dumps(_canon(obj), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def file_identity(path: str | Path | None) -> list[Any] | None:
+    """[path, size, mtime_ns] of a file, [path, None, None] if it is missing, None for no path."""
+    if path is None:
+        return None
+    try:
+        st = os.stat(path)
+        return [str(path), st.st_size, st.st_mtime_ns]
+    except OSError:
+        return [str(path), None, None]
+
+
+_sha_cache: dict[tuple[str, int, int], str] = {}
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 hex of a file's bytes (memoised per path, size and modification time)."""
+    st = os.stat(path)
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _sha_cache:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _sha_cache[key] = h.hexdigest()
+    return _sha_cache[key]
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class Cache:
+    """Stage entries under `root` (a local directory every worker can reach)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def path(self, stage: str, key: str) -> Path:
+        return self.root / stage / key[:2] / f"{key}.npz"
+
+    def has(self, stage: str, key: str) -> bool:
+        return self.path(stage, key).is_file()
+
+    def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
+        """The entry's arrays, or None if it is missing or unreadable (then it is removed)."""
+        p = self.path(stage, key)
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            p.unlink(missing_ok=True)
+            return None
+
+    def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Path:
+        """Write an entry atomically (temp file, fsync, rename, fsync the directory)."""
+        p = self.path(stage, key)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{key[:16]}.", suffix=".tmp", dir=p.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, p)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        _fsync_dir(p.parent)
+        return p

@@ -1,0 +1,196 @@
+"""Pipeline files (`pipelines/<name>.yaml`): load, validate against schemas/pipeline.schema.json,
+fill in defaults, resolve file parameters, and check everything a run needs before any work.
+
+Every error names the pipeline key at fault (e.g. `stages.view.params.mean_error_deg`) and the fix.
+File parameters ("x-file" in the schema) may use `{data}` for the dataset root (`--data`); other
+relative paths are relative to the current directory.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import ConfigError, ModelFileError
+from ..stages import STAGES, backend_class
+from ..stages.base import Backend, BackendContext
+
+SCHEMA_FILE = Path(__file__).resolve().parent.parent.parent / "schemas" / "pipeline.schema.json"
+PIPELINES_DIR = Path(__file__).resolve().parent.parent.parent / "pipelines"
+
+
+@dataclass
+class StageConfig:
+    """One stage as configured: backend name, full parameters (defaults filled, files resolved),
+    and which parameters name data files and model files."""
+
+    stage: str
+    backend: str
+    params: dict[str, Any]
+    data_files: dict[str, Path] = field(default_factory=dict)
+    model_files: dict[str, Path] = field(default_factory=dict)
+
+    def make(self, data_root: Path) -> Backend:
+        """An instance of the backend (imports its module)."""
+        return backend_class(self.stage, self.backend)(self.params, BackendContext(Path(data_root)))
+
+
+@dataclass
+class PipelineConfig:
+    """A validated pipeline. `config` is the effective configuration (defaults filled in) that goes
+    into the store's provenance; `sha256` hashes the pipeline file as written."""
+
+    name: str
+    file: str
+    sha256: str
+    dataset_format: str
+    dataset_options: dict[str, Any]
+    stages: dict[str, StageConfig]
+    shard_size: int
+    cache_depth_maps: bool
+    config: dict[str, Any]
+
+
+def schema() -> dict[str, Any]:
+    return json.loads(SCHEMA_FILE.read_text())
+
+
+def _key(path) -> str:
+    return ".".join(str(p) for p in path) or "(top level)"
+
+
+def resolve_pipeline_path(pipeline: str | Path) -> Path:
+    """A pipeline file path; a bare name like "gfie" means pipelines/gfie.yaml of this package."""
+    p = Path(pipeline)
+    if p.is_file():
+        return p
+    if p.suffix == "" and (PIPELINES_DIR / f"{p.name}.yaml").is_file():
+        return PIPELINES_DIR / f"{p.name}.yaml"
+    known = ", ".join(sorted(q.stem for q in PIPELINES_DIR.glob("*.yaml")))
+    raise ConfigError(f"pipeline file {p} not found (bundled pipelines: {known})")
+
+
+def _parse_override(item: str) -> tuple[list[str], Any]:
+    if "=" not in item:
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. stages.view.params.mean_error_deg=30")
+    key, value = item.split("=", 1)
+    try:
+        return key.strip().split("."), yaml.safe_load(value)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"--set {item!r}: the value is not valid YAML ({e})") from None
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str] | dict[str, Any] | None) -> dict[str, Any]:
+    """Copy of raw with dotted-key overrides applied ("stages.view.params.mean_error_deg=30" or a dict)."""
+    raw = copy.deepcopy(raw)
+    items = (list(overrides.items()) if isinstance(overrides, dict)
+             else [_parse_override(o) for o in overrides or []])
+    for key, value in items:
+        parts = key.split(".") if isinstance(key, str) else key
+        node = raw
+        for part in parts[:-1]:
+            if not isinstance(node.setdefault(part, {}), dict):
+                raise ConfigError(f"override {'.'.join(parts)}: {part} is not a mapping")
+            node = node[part]
+        node[parts[-1]] = value
+    return raw
+
+
+def validate(raw: Any, where: str) -> None:
+    """JSON-Schema validation; ConfigError listing every error by its key."""
+    import jsonschema
+
+    v = jsonschema.Draft202012Validator(schema())
+    errors = sorted(v.iter_errors(raw), key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    if not errors:
+        return
+    # an `if/then` branch reports the params error itself; drop the generic ones
+    lines = [f"  {_key(e.absolute_path)}: {e.message}" for e in errors[:12]]
+    more = f"\n  ... and {len(errors) - 12} more" if len(errors) > 12 else ""
+    raise ConfigError(f"{where} is not a valid pipeline (schemas/pipeline.schema.json):\n" + "\n".join(lines) + more)
+
+
+def _defaults(props: dict[str, Any]) -> dict[str, Any]:
+    return {k: copy.deepcopy(v["default"]) for k, v in props.items() if "default" in v}
+
+
+def _resolve(value: str, data_root: Path) -> Path:
+    p = Path(str(value).replace("{data}", str(data_root)))
+    return p if p.is_absolute() else (Path.cwd() / p)
+
+
+def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
+                  overrides: list[str] | dict[str, Any] | None = None, check_files: bool = True) -> PipelineConfig:
+    """Load and validate a pipeline (a file, a bundled name, or an already-parsed dict).
+
+    Fills in defaults, resolves file parameters against data_root, and (check_files) checks that
+    every backend is available and every named file exists: ConfigError/ModelFileError otherwise,
+    before any work.
+    """
+    data_root = Path(data_root).resolve()
+    if isinstance(pipeline, dict):
+        raw, where = pipeline, "pipeline"
+        text = json.dumps(pipeline, sort_keys=True).encode()
+    else:
+        path = resolve_pipeline_path(pipeline)
+        text = path.read_bytes()
+        where = str(path)
+        try:
+            raw = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    raw = apply_overrides(raw if isinstance(raw, dict) else {}, overrides) if raw is not None else raw
+    validate(raw, where)
+    sch = schema()
+    cfg = copy.deepcopy(raw)
+    cfg.setdefault("run", {})
+    cfg["run"] = {**_defaults(sch["properties"]["run"]["properties"]), **cfg["run"]}
+    cfg["dataset"].setdefault("options", {})
+    cfg["stages"].setdefault("input", {"backend": "check"})
+    stages: dict[str, StageConfig] = {}
+    for stage in STAGES:
+        sc = cfg["stages"][stage]
+        backend = sc["backend"]
+        props = sch["$defs"][f"{stage}.{backend}"]["properties"]
+        params = {**_defaults(props), **sc.get("params", {})}
+        sc["params"] = params
+        data_files, model_files = {}, {}
+        resolved = dict(params)
+        for name, spec in props.items():
+            kind = spec.get("x-file")
+            if kind and name in params and params[name] is not None:
+                p = _resolve(params[name], data_root)
+                resolved[name] = p
+                (model_files if kind == "model" else data_files)[name] = p
+        stages[stage] = StageConfig(stage, backend, resolved, data_files, model_files)
+    conf = PipelineConfig(
+        name=cfg["name"], file=where, sha256=hashlib.sha256(text).hexdigest(),
+        dataset_format=cfg["dataset"]["format"], dataset_options=dict(cfg["dataset"]["options"]),
+        stages=stages, shard_size=int(cfg["run"]["shard_size"]),
+        cache_depth_maps=bool(cfg["run"]["cache_depth_maps"]), config=cfg)
+    if check_files:
+        check_pipeline(conf, data_root)
+    return conf
+
+
+def check_pipeline(conf: PipelineConfig, data_root: Path) -> list[Backend]:
+    """Before any work: model files exist, backends are available, each backend's own check
+    (data files readable). Returns the backend instances."""
+    sch = schema()
+    for sc in conf.stages.values():
+        props = sch["$defs"][f"{sc.stage}.{sc.backend}"]["properties"]
+        for name, path in sc.model_files.items():
+            if not path.is_file():
+                hint = props[name].get("x-hint", "")
+                raise ModelFileError(f"stages.{sc.stage}.params.{name}: model file {path} does not exist; {hint}")
+    backends = []
+    for sc in conf.stages.values():
+        b = sc.make(data_root)
+        b.check()
+        backends.append(b)
+    return backends

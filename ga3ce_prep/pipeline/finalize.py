@@ -1,0 +1,203 @@
+"""Finalize: consolidate the shards' cache entries into the Zarr store, atomically.
+
+The store is written to `<work>/partial.zarr` shard by shard (memory: one shard's entries plus
+the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store, if
+any, is moved aside first and removed after). A run killed during finalize leaves no half store
+under `--out`; the next run writes it again from the cache. If `--out` already holds a store of
+the same run key (same frames, stages, parameters and inputs), finalize does nothing.
+
+Which frames are kept (docs/pipeline.md): a failure of input, depth, head or view drops the frame;
+a failure of objects keeps it with zero objects; a failure of pose keeps it with a NaN pose.
+Every failure is a `failures/*` record (frame id, stage, error class, message, action).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import StoreError
+from ..skeleton import N_JOINTS
+from ..stages import DROPS_FRAME, STAGES
+from ..store import StoreWriter
+from .cache import Cache
+from .tasks import Shard
+
+
+@dataclass
+class FinalizeCounts:
+    """What finalize wrote: counts only (deterministic, they go into the store's attrs)."""
+
+    frames_total: int = 0
+    frames_kept: int = 0
+    objects: int = 0
+    obj_count_hist: dict[str, int] = field(default_factory=dict)   # objects per frame -> frames
+    failures: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> error class -> n
+    dropped_by_stage: dict[str, int] = field(default_factory=dict)
+    degraded_by_stage: dict[str, int] = field(default_factory=dict)
+    masks_dropped_few_points: int = 0
+
+    def as_attrs(self) -> dict[str, Any]:
+        return {"frames": self.frames_kept, "frames_in_dataset": self.frames_total,
+                "frames_dropped": self.frames_total - self.frames_kept, "objects": self.objects,
+                "objects_per_frame_hist": self.obj_count_hist, "failures": self.failures,
+                "dropped_by_stage": self.dropped_by_stage, "degraded_by_stage": self.degraded_by_stage,
+                "masks_dropped_few_points": self.masks_dropped_few_points}
+
+
+def _entries(cache: Cache, shard: Shard) -> dict[str, dict[str, np.ndarray]]:
+    out = {}
+    for stage in STAGES:
+        e = cache.load(stage, shard.keys[stage])
+        if e is None:
+            raise StoreError(f"cache entry for stage {stage} of shard {shard.index} is missing in {cache.root}; "
+                             "rerun the same command to compute it")
+        if e["ids"].tolist() != shard.ids.tolist():
+            raise StoreError(f"cache entry {cache.path(stage, shard.keys[stage])} belongs to other frames; "
+                             f"remove {cache.root} and rerun")
+        out[stage] = e
+    return out
+
+
+def _fsync_tree(root: Path) -> None:
+    for dirpath, _, files in os.walk(root):
+        for name in files:
+            fd = os.open(os.path.join(dirpath, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+
+def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: FinalizeCounts):
+    """One shard's kept frames (dict of arrays), objects, and failure records."""
+    n = len(shard.frames)
+    drop = np.zeros(n, bool)
+    fail_rows: list[tuple[str, str, str, str, str]] = []
+    for stage in STAGES:
+        entry = e[stage]
+        for i, err, msg in zip(entry["fail_idx"].tolist(), entry["fail_error"].tolist(), entry["fail_message"].tolist()):
+            action = "dropped" if DROPS_FRAME[stage] else "degraded"
+            if DROPS_FRAME[stage]:
+                drop[i] = True
+                counts.dropped_by_stage[stage] = counts.dropped_by_stage.get(stage, 0) + 1
+            else:
+                counts.degraded_by_stage[stage] = counts.degraded_by_stage.get(stage, 0) + 1
+            counts.failures.setdefault(stage, {})
+            counts.failures[stage][err] = counts.failures[stage].get(err, 0) + 1
+            fail_rows.append((shard.frames[i].id, stage, err, msg, action))
+    # a frame is kept only if every dropping stage ran and succeeded for it
+    for stage in STAGES:
+        if DROPS_FRAME[stage]:
+            drop |= ~e[stage]["ok"]
+    keep = ~drop
+    obj = e["objects"]
+    obj_count = np.where(obj["ok"], obj["count"], 0).astype(np.int32)
+    starts = np.concatenate([[0], np.cumsum(obj["count"])[:-1]]).astype(np.int64)
+    sel = np.concatenate([np.arange(starts[i], starts[i] + obj["count"][i]) for i in np.flatnonzero(keep & obj["ok"])]
+                         or [np.zeros(0, np.int64)]).astype(np.int64)
+    counts.masks_dropped_few_points += int(obj["n_dropped"][keep].sum())
+    fr = [shard.frames[i] for i in np.flatnonzero(keep)]
+
+    def stack(attr: str, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray:
+        return np.array([np.asarray(getattr(f, attr), dtype) for f in fr], dtype).reshape(len(fr), *shape)
+
+    pose = e["pose"]["pose"][keep]
+    pose[~e["pose"]["ok"][keep]] = np.nan
+    gaze = stack("gaze", (3,))
+    eye, target = stack("eye", (3,)), stack("gaze_target", (3,))
+    # the ground-truth direction where the format gives only the two points (GFIE's definition)
+    d = target - eye
+    nrm = np.linalg.norm(d, axis=1, keepdims=True)
+    fill = ~np.isfinite(gaze).all(1) & np.isfinite(nrm[:, 0]) & (nrm[:, 0] > 0)
+    gaze[fill] = (d[fill] / nrm[fill]).astype(np.float32)
+    frames = {
+        "id": np.array([f.id for f in fr], dtype=str),
+        "split": [f.split for f in fr], "scene": [f.scene for f in fr],
+        "K": stack("K", (3, 3)), "image_size": np.array([f.image_size for f in fr], np.int32).reshape(len(fr), 2),
+        "head_box": stack("head_box", (4,)), "body_box": stack("body_box", (4,)),
+        "head_pos": e["head"]["head_pos"][keep], "pose": pose.reshape(len(fr), N_JOINTS, 3),
+        "view": e["view"]["view"][keep], "gaze": gaze, "eye": eye, "gaze_target": target,
+        "obj_count": obj_count[keep],
+    }
+    objects = {"xyz": obj["xyz"][sel], "area": obj["area"][sel], "score": obj["score"][sel]}
+    counts.frames_total += n
+    counts.frames_kept += int(keep.sum())
+    counts.objects += len(sel)
+    for c, k in Counter(obj_count[keep].tolist()).items():
+        counts.obj_count_hist[str(c)] = counts.obj_count_hist.get(str(c), 0) + k
+    return frames, objects, fail_rows
+
+
+def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: dict[str, Any],
+             run_key: str, progress: bool = True) -> tuple[FinalizeCounts, bool]:
+    """Write the store at `out` from the cache (see the module docstring). Returns the counts and
+    whether anything was written (False: `out` was already this run's store)."""
+    from tqdm import tqdm
+
+    existing = read_run_key(out)
+    if existing == run_key:
+        return FinalizeCounts(**existing_counts(out)), False
+    partial = work / "partial.zarr"
+    if partial.exists():
+        shutil.rmtree(partial)
+    counts = FinalizeCounts()
+    writer = StoreWriter(partial, overwrite=True)
+    for shard in tqdm(shards, desc="finalize", unit="shard", disable=not progress, leave=False):
+        frames, objects, fails = shard_block(shard, _entries(cache, shard), counts)
+        frames["split"] = np.array([_split_code(s) for s in frames["split"]], np.int8)
+        frames["scene"] = np.array([writer.scene_code(s) for s in frames["scene"]], np.int32)
+        writer.append_frames(frames, objects)
+        if fails:
+            cols = list(zip(*fails))
+            writer.append_failures({k: np.array(v, dtype=str) for k, v in
+                                    zip(("frame_id", "stage", "error", "message", "action"), cols)})
+    counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
+    attrs = {**attrs, "summary": counts.as_attrs(), "run": {**attrs.get("run", {}), "key": run_key}}
+    writer.close(attrs)
+    _fsync_tree(partial)
+    old = work / "previous.zarr"
+    if old.exists():
+        shutil.rmtree(old)
+    if out.exists():
+        os.rename(out, old)
+    os.rename(partial, out)
+    if old.exists():
+        shutil.rmtree(old)
+    return counts, True
+
+
+def _split_code(split: str) -> int:
+    from ..frames import SPLITS
+
+    try:
+        return SPLITS.index(split)
+    except ValueError:
+        raise StoreError(f"split {split!r} is not one of {list(SPLITS)} (adapter bug)") from None
+
+
+def read_run_key(out: Path) -> str | None:
+    """The run key of a finished store at `out`, or None."""
+    try:
+        import zarr
+
+        attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+    except Exception:  # noqa: BLE001 - no store, or not a store
+        return None
+    return (attrs.get("run") or {}).get("key")
+
+
+def existing_counts(out: Path) -> dict[str, Any]:
+    import zarr
+
+    s = dict(zarr.open_group(str(out), mode="r").attrs).get("summary", {})
+    return {"frames_total": s.get("frames_in_dataset", 0), "frames_kept": s.get("frames", 0),
+            "objects": s.get("objects", 0), "obj_count_hist": s.get("objects_per_frame_hist", {}),
+            "failures": s.get("failures", {}), "dropped_by_stage": s.get("dropped_by_stage", {}),
+            "degraded_by_stage": s.get("degraded_by_stage", {}),
+            "masks_dropped_few_points": s.get("masks_dropped_few_points", 0)}

@@ -1,0 +1,75 @@
+"""The preprocessing stages and the registry of their backends (DESIGN.md §1).
+
+Stages, in dependency order, and what a failure of each does to the frame (docs/pipeline.md):
+
+    input    frame checks (finite K, readable image)   failure drops the frame
+    depth    depth map + raw validity                   failure drops the frame (no head position)
+    objects  P_object: per-mask median 3D points         failure degrades it: zero objects
+    head     t_object                                    failure drops the frame
+    pose     P_pose (30, 3)                              failure degrades it: NaN pose
+    view     the view prior v                            failure drops the frame
+
+Backends are imported only when a pipeline names them (Open3D, h5py stay unloaded otherwise).
+Backends registered as `Planned` belong to a later issue: a pipeline naming one fails before any
+work with a clear message.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+from ..errors import ConfigError
+from .base import Backend
+
+STAGES: tuple[str, ...] = ("input", "depth", "objects", "head", "pose", "view")
+UPSTREAM: dict[str, tuple[str, ...]] = {
+    "input": (), "depth": ("input",), "objects": ("depth",), "head": ("depth",),
+    "pose": ("input",), "view": ("input",),
+}
+# True: a failure of this stage drops the frame from the store; False: the frame is kept, degraded.
+DROPS_FRAME: dict[str, bool] = {
+    "input": True, "depth": True, "objects": False, "head": True, "pose": False, "view": True,
+}
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A backend that a later issue provides; `what` says what it is."""
+
+    what: str
+
+
+BACKENDS: dict[str, str | Planned] = {
+    "input/check": "ga3ce_prep.stages.input:CheckInput",
+    "depth/sensor": "ga3ce_prep.stages.depth:SensorDepth",
+    "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
+    "depth/zoedepth": Planned("monocular metric depth through ONNX Runtime (ZoeDepth)"),
+    "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
+    "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
+    "objects/mobilesam": Planned("MobileSAM segment-everything through ONNX Runtime"),
+    "head/depth": "ga3ce_prep.stages.head:DepthHead",
+    "pose/precomputed": "ga3ce_prep.stages.pose:PrecomputedPose",
+    "pose/oracle": "ga3ce_prep.stages.pose:OraclePose",
+    "pose/onnx": Planned("a smpl+head_30 crop pose model through ONNX Runtime"),
+    "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
+    "view/oracle": "ga3ce_prep.stages.view:OracleView",
+    "view/onnx": Planned("a head-crop (GFIE) or 7-frame head-body (GAFA) view network through ONNX Runtime"),
+}
+
+
+def backend_class(stage: str, name: str) -> type[Backend]:
+    """The class registered as "stage/name"; ConfigError for unknown or planned backends."""
+    entry = BACKENDS.get(f"{stage}/{name}")
+    if entry is None:
+        known = sorted(k.split("/")[1] for k in BACKENDS if k.startswith(stage + "/"))
+        raise ConfigError(f"stages.{stage}.backend: unknown backend {name!r}; known: {', '.join(known)}")
+    if isinstance(entry, Planned):
+        ready = sorted(k.split("/")[1] for k, v in BACKENDS.items()
+                       if k.startswith(stage + "/") and not isinstance(v, Planned))
+        raise ConfigError(f"stages.{stage}.backend: {name!r} ({entry.what}) is not available yet in this "
+                          f"build; use one of: {', '.join(ready)}")
+    module, cls = entry.split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+__all__ = ["BACKENDS", "DROPS_FRAME", "STAGES", "UPSTREAM", "Planned", "backend_class"]

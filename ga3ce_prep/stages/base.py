@@ -1,0 +1,130 @@
+"""The stage contract: what each stage returns per frame, and the backend base classes.
+
+A stage is a pure function of one frame and its upstream outputs (DESIGN.md §1). Each stage has
+named backends, chosen in the pipeline file; a backend is a small class with its validated
+parameters (defaults filled in from schemas/pipeline.schema.json) and one per-frame method:
+
+    input    CheckInput.check(frame)                          -> None   (raises FrameError)
+    depth    DepthBackend.depth(frame)                        -> DepthMap
+    objects  ObjectsBackend.objects(frame, depth: DepthMap)   -> FrameObjects
+    head     HeadBackend.head(frame, depth: DepthMap)         -> (3,) float32 t_object, metres
+    pose     PoseBackend.pose(frame)                          -> (30, 3) float32 smpl+head_30, metres
+    view     ViewBackend.view(frame)                          -> (3,) float32 unit v, camera frame
+
+A per-frame problem raises FrameError (or any exception): the pipeline turns it into a failure
+record (stage, error class, message) and goes on. Units: metres; camera frame x right, y down,
+z forward.
+
+Adding a backend (e.g. `objects/mobilesam`): write the class here-alike in the stage's module,
+register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`, and add its parameter
+schema as `$defs/<stage>.<name>` in schemas/pipeline.schema.json (mark model-file parameters with
+"x-file": "model" and an "x-hint" saying how to make the file). Bump `version` whenever the
+backend's output for the same parameters changes, so stale cache entries are not reused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..frames import FrameRef
+
+
+@dataclass
+class DepthMap:
+    """One frame's depth as the geometry stages use it.
+
+    depth: (H, W) float32 metres, completed (holes filled), 0 = still unknown.
+    valid: (H, W) bool, the raw sensor validity: the pixels whose depth was measured. Object
+    medians and the head position use only these; the completed depth serves the segmenter.
+    """
+
+    depth: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass
+class FrameObjects:
+    """One frame's P_object: per-mask median 3D points.
+
+    xyz: (M, 3) float32 metres; area: (M,) int32 mask pixels; score: (M,) float32 (predicted IoU,
+    or for weight-free backends the fraction of the mask backed by measured depth);
+    n_dropped: masks dropped for having too few valid depth points.
+    """
+
+    xyz: np.ndarray
+    area: np.ndarray
+    score: np.ndarray
+    n_dropped: int = 0
+
+    @staticmethod
+    def empty() -> "FrameObjects":
+        return FrameObjects(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32), 0)
+
+
+@dataclass
+class BackendContext:
+    """What a backend may know about the run besides its parameters."""
+
+    data_root: Path
+
+
+class Backend:
+    """Base of every backend. `params` are validated, with defaults filled in; parameters naming
+    files ("x-file" in the schema) are already resolved to absolute paths."""
+
+    stage: ClassVar[str] = ""
+    name: ClassVar[str] = ""
+    version: ClassVar[str] = "1"  # part of the cache key: bump when outputs change for the same params
+
+    def __init__(self, params: dict[str, Any], ctx: BackendContext):
+        self.params = dict(params)
+        self.ctx = ctx
+
+    def check(self) -> None:
+        """Validate once before any work (files readable, keys present); raise ConfigError or
+        ModelFileError naming the pipeline key and the fix. Default: nothing to check."""
+
+
+class CheckInputBackend(Backend):
+    stage = "input"
+
+    def check_frame(self, frame: FrameRef) -> None:
+        raise NotImplementedError
+
+
+class DepthBackend(Backend):
+    stage = "depth"
+
+    def depth(self, frame: FrameRef) -> DepthMap:
+        raise NotImplementedError
+
+
+class ObjectsBackend(Backend):
+    stage = "objects"
+
+    def objects(self, frame: FrameRef, depth: DepthMap) -> FrameObjects:
+        raise NotImplementedError
+
+
+class HeadBackend(Backend):
+    stage = "head"
+
+    def head(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
+        raise NotImplementedError
+
+
+class PoseBackend(Backend):
+    stage = "pose"
+
+    def pose(self, frame: FrameRef) -> np.ndarray:
+        raise NotImplementedError
+
+
+class ViewBackend(Backend):
+    stage = "view"
+
+    def view(self, frame: FrameRef) -> np.ndarray:
+        raise NotImplementedError

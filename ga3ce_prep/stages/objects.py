@@ -1,0 +1,97 @@
+"""The objects stage: a segmenter's masks -> GA3CE's P_object (per-mask median 3D points).
+
+Every backend is a `MaskObjects`: it only says how to get masks (`masks`); the shared step
+`MaskObjects.objects` back-projects each mask with the completed depth and K and keeps the
+per-axis median of its *measured* points (`geometry.object_positions`, vectorised); masks with
+fewer than `min_points` measured points are dropped and counted.
+
+Backends: `geometric` (Open3D planes + DBSCAN, weight-free, stages/geometric.py) and `oracle` (the
+synthetic world's instance masks). Adding `objects/mobilesam` is one small class:
+
+    class MobileSAMObjects(MaskObjects):
+        name = "mobilesam"
+        def masks(self, frame, depth):
+            rgb = load_rgb(frame.image_path)
+            m, iou = segmenter(rgb, out_size=depth.depth.shape)   # (M, H, W) bool, (M,) float
+            return m, iou                                         # scores: predicted IoU
+
+plus its registry line in `ga3ce_prep.stages.BACKENDS` and its parameter schema (model files
+marked "x-file": "model") in schemas/pipeline.schema.json.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..frames import FrameRef
+from ..geometry import object_positions
+from .base import DepthMap, FrameObjects, ObjectsBackend
+from .geometric import GeometricParams, segment_geometric
+from .noise import frame_rng
+from .truth import truth_record
+
+
+class MaskObjects(ObjectsBackend):
+    """Base of mask-producing backends; subclasses implement `masks`."""
+
+    def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray | None]:
+        """Masks at the depth map's resolution: (M, H, W) bool (may overlap) or an (H, W) int label
+        image (-1 = none), and optional scores (M,) or (n_labels,) (None: the measured fraction)."""
+        raise NotImplementedError
+
+    def objects(self, frame: FrameRef, depth: DepthMap) -> FrameObjects:
+        masks, scores = self.masks(frame, depth)
+        H, W = depth.depth.shape
+        if masks.shape[-2:] != (H, W):  # a segmenter working at its own resolution
+            if masks.ndim == 3:
+                masks = np.stack([cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+                                  for m in masks]) if len(masks) else np.zeros((0, H, W), bool)
+            else:
+                masks = cv2.resize(masks.astype(np.int32), (W, H), interpolation=cv2.INTER_NEAREST)
+        pos = object_positions(depth.depth, frame.K, masks, valid=depth.valid,
+                               min_points=int(self.params["min_points"]))
+        if scores is None:
+            score = pos.n_valid / np.maximum(pos.area, 1)
+        else:
+            score = np.asarray(scores, np.float32)[pos.index]
+        return FrameObjects(xyz=pos.xyz.astype(np.float32), area=pos.area.astype(np.int32),
+                            score=np.asarray(score, np.float32), n_dropped=int(pos.n_dropped))
+
+
+class GeometricObjects(MaskObjects):
+    """Weight-free segments: RANSAC planes and DBSCAN clusters of the completed depth (Open3D).
+    Score: the fraction of the segment's pixels with measured depth."""
+
+    name = "geometric"
+
+    def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, None]:
+        p = GeometricParams(**{k: v for k, v in self.params.items() if k in GeometricParams.__dataclass_fields__})
+        seed = int(frame_rng(self.params["seed"], "objects/geometric", frame.id).integers(0, 2**31 - 1))
+        return segment_geometric(depth.depth, frame.K, p, seed=seed, head_box=frame.head_box), None
+
+
+class OracleObjects(MaskObjects):
+    """The synthetic world's exact instance masks, restricted to the chosen object kinds
+    (default object + furniture; structure = floor/walls/ceiling, person = the subject). Score 1."""
+
+    name = "oracle"
+
+    def check(self) -> None:
+        truth_record.check(self.params["truth"])
+
+    def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
+        rec = truth_record(self.params["truth"], frame.id)
+        inst = np.asarray(rec.instance)
+        ids, kinds = instance_kinds(rec)
+        keep_ids = ids[np.isin(kinds, list(self.params["kinds"]))]
+        n = int(max(inst.max(initial=-1), ids.max(initial=-1))) + 1
+        lut = np.full(n + 1, -1, np.int32)  # index n+... never used; -1 maps through lut[-1] = -1
+        lut[keep_ids] = keep_ids
+        labels = lut[inst.astype(np.int64)]
+        return labels, np.ones(n, np.float32)
+
+
+def instance_kinds(rec) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (K,) int, kinds (K,) str) of a truth record's object table."""
+    table = rec.objects
+    return np.asarray(table["id"], np.int64), np.asarray(table["kind"]).astype(str)
