@@ -1,0 +1,171 @@
+"""The paper's ablations (Tables 4 and 5, DESIGN.md §3): one switch each, trained from the same
+store with the same recipe, evaluated on the same test frames, printed beside the paper's numbers.
+
+Because our store's view prior is not the paper's, rows are also compared as ratios: our 3D MAE /
+our v prior's, beside the paper's 3D MAE / its appearance-only MAE.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .evaluate import evaluate
+from .plots import plot_ablation
+from .trainer import TrainConfig, train
+
+log = logging.getLogger("ga3ce_prep.train")
+
+
+@dataclass(frozen=True)
+class Ablation:
+    """One row: its name (the run folder), label, the ModelConfig overrides, which paper table it
+    belongs to with that table's check marks, and the paper's 3D MAE on GFIE and GAFA."""
+
+    name: str
+    label: str
+    overrides: dict[str, Any]
+    table4: tuple[str, str, str] | None   # (appearance, pose, objects) marks; None = not in Table 4
+    table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks
+    paper_gfie: float | None
+    paper_gafa: float | None
+
+
+ABLATIONS: tuple[Ablation, ...] = (
+    Ablation("appearance", "appearance only (v)", {"use_context": False}, ("x", "-", "-"), None, 19.4, 22.9),
+    Ablation("no-objects", "appearance + pose", {"use_objects": False}, ("x", "x", "-"), None, 13.1, 20.3),
+    Ablation("no-pose", "appearance + objects", {"use_pose": False}, ("x", "-", "x"), None, None, None),
+    Ablation("no-ga3ce", "appearance + 3D w/o GA3CE", {"rotation": "none", "encoding": "standard"},
+             ("x", "x", "x*"), None, 18.9, 21.2),
+    Ablation("full", "GA3CE (full)", {}, ("x", "x", "x"), ("x", "x", "x"), 11.1, 19.9),
+    Ablation("no-egocentric", "no egocentric transform", {"rotation": "none"}, None, ("-", "-", "x"), 14.2, 20.8),
+    Ablation("no-cyclotorsion", "no cyclotorsion (axis-angle)", {"rotation": "axis_angle"}, None, ("x", "-", "x"), 12.1, 20.1),
+    Ablation("no-d3", "no D3 (standard encoding)", {"encoding": "standard"}, None, ("x", "x", "-"), 12.9, 20.9),
+)
+BY_NAME = {a.name: a for a in ABLATIONS}
+PAPER_APPEARANCE = {"gfie": 19.4, "gafa": 22.9}
+
+
+def _run_done(run: Path, epochs: int) -> bool:
+    hist = run / "history.csv"
+    if not (run / "best.pt").exists() or not hist.exists():
+        return False
+    with open(hist) as f:
+        rows = list(csv.DictReader(f))
+    return bool(rows) and int(rows[-1]["epoch"]) + 1 >= epochs
+
+
+def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, seeds: list[int] | None = None,
+           split: str = "test", force: bool = False) -> dict[str, Any]:
+    """Train and evaluate each ablation row (out/<row>/seed<k>) with the base recipe.
+
+    Finished runs are reused (the command can be rerun to resume); unfinished ones are resumed.
+    Returns {rows: [...], paper_column, store, seeds, full_best, table} and writes out/ablation.json,
+    out/ablation.csv and out/ablation.png.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = rows or [a.name for a in ABLATIONS]
+    unknown = [n for n in names if n not in BY_NAME]
+    if unknown:
+        raise ValueError(f"unknown ablation rows {unknown}; choose from {list(BY_NAME)}")
+    seeds = seeds or [base.seed]
+    results = []
+    prior_mae = math.nan
+    for name in names:
+        ab = BY_NAME[name]
+        maes, evals = [], []
+        for seed in seeds:
+            run = out / name / f"seed{seed}"
+            cfg = dataclasses.replace(base, out=str(run), seed=seed,
+                                      model=dataclasses.replace(base.model, **ab.overrides))
+            if force or not _run_done(run, cfg.epochs):
+                log.info("ablation %s, seed %d: training into %s", name, seed, run)
+                train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
+            r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads)
+            maes.append(r["methods"]["model"]["mae3d"])
+            prior_mae = r["methods"]["view_prior"]["mae3d"]
+            evals.append(r)
+        mae = float(np.mean(maes))
+        row = {"name": name, "label": ab.label, "table4": ab.table4, "table5": ab.table5,
+               "mae3d": mae, "mae3d_std": float(np.std(maes)) if len(maes) > 1 else None,
+               "mae3d_seeds": maes, "ratio": mae / prior_mae,
+               "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
+               "mae2d": float(np.mean([e["methods"]["model"]["mae2d"] for e in evals])),
+               "paper_gfie": ab.paper_gfie, "paper_gafa": ab.paper_gafa,
+               "paper_ratio_gfie": ab.paper_gfie / PAPER_APPEARANCE["gfie"] if ab.paper_gfie else None,
+               "paper_ratio_gafa": ab.paper_gafa / PAPER_APPEARANCE["gafa"] if ab.paper_gafa else None}
+        results.append(row)
+    from ..store import open_store  # the store's dataset name picks the paper column
+
+    ds_name = str(open_store(base.store).attrs.get("dataset", {}).get("name", ""))
+    paper_column = "gafa" if ds_name == "gafa" else "gfie"
+    full = next((r for r in results if r["name"] == "full"), None)
+    others = [r for r in results if r["name"] != "full"]
+    full_best = None if full is None else all(full["mae3d"] < r["mae3d"] for r in others)
+    summary = {"store": str(base.store), "dataset": ds_name, "split": split, "seeds": seeds,
+               "epochs": base.epochs, "train_frames": base.train_frames, "v_prior_mae3d": prior_mae,
+               "paper_column": paper_column, "rows": results, "full_best": full_best}
+    summary["table"] = format_ablation_table(summary)
+    (out / "ablation.json").write_text(json.dumps(summary, indent=2, default=float))
+    with open(out / "ablation.csv", "w", newline="") as f:
+        keys = ["name", "label", "mae3d", "mae3d_std", "ratio", "mae2d", "paper_gfie", "paper_gafa",
+                "paper_ratio_gfie", "paper_ratio_gafa"]
+        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(results)
+    summary["png"] = str(plot_ablation(results, out / "ablation.png", paper_column))
+    return summary
+
+
+def _num(x: float | None, std: float | None = None) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "  -  "
+    return f"{x:5.2f}" + (f" +- {std:4.2f}" if std is not None else "")
+
+
+def format_ablation_table(summary: dict[str, Any]) -> str:
+    """Tables 4 and 5 laid out as in the paper, with our 3D MAE and ratio beside the paper's."""
+    rows = {r["name"]: r for r in summary["rows"]}
+    col = summary["paper_column"].upper()
+    seeds = summary["seeds"]
+    head = (f"{summary['store']} | split {summary['split']} | v prior 3D MAE {summary['v_prior_mae3d']:.2f} deg | "
+            f"{summary['epochs']} epochs | seeds {seeds}")
+    out = [head, "", "Table 4: input components (x = used)"]
+    out.append(f"{'':30s} {'App.':>5s} {'Pose':>5s} {'Obj.':>5s} | {'paper ' + col:>9s} {'ratio':>6s} | "
+               f"{'ours':>13s} {'ratio':>6s}")
+    for a in ABLATIONS:
+        r = rows.get(a.name)
+        if r is None or a.table4 is None:
+            continue
+        pr = r[f"paper_ratio_{summary['paper_column']}"]
+        out.append(f"{a.label:30s} {a.table4[0]:>5s} {a.table4[1]:>5s} {a.table4[2]:>5s} | "
+                   f"{_num(r['paper_' + summary['paper_column']]):>9s} {_num(pr):>6s} | "
+                   f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
+    out += ["  (x* = 3D context fed without the egocentric transform and with standard encoding)", "",
+            "Table 5: GA3CE components (x = used)"]
+    out.append(f"{'':30s} {'Ego.':>5s} {'Cyc.':>5s} {'D3':>5s} | {'paper ' + col:>9s} {'ratio':>6s} | "
+               f"{'ours':>13s} {'ratio':>6s}")
+    for a in ABLATIONS:
+        r = rows.get(a.name)
+        if r is None or a.table5 is None:
+            continue
+        pr = r[f"paper_ratio_{summary['paper_column']}"]
+        out.append(f"{a.label:30s} {a.table5[0]:>5s} {a.table5[1]:>5s} {a.table5[2]:>5s} | "
+                   f"{_num(r['paper_' + summary['paper_column']]):>9s} {_num(pr):>6s} | "
+                   f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
+    out.append("")
+    out.append("ratio = 3D MAE / appearance-only 3D MAE (ours: the store's v prior on the same frames)")
+    if summary["full_best"] is True:
+        out.append("the full model is best: every ablation row has a higher 3D MAE")
+    elif summary["full_best"] is False:
+        worse = [r["label"] for r in summary["rows"] if r["name"] != "full" and r["mae3d"] <= rows["full"]["mae3d"]]
+        out.append("the full model is NOT best: " + ", ".join(worse) + " reached a 3D MAE at or below it")
+    return "\n".join(out)

@@ -1,0 +1,234 @@
+"""A torch Dataset over a 3D context store, its collate, and object-count bucketing.
+
+`ContextDataset` loads the store's arrays once (a few KB per frame) and yields per-frame samples:
+view (3,), pose (30, 3) NaN rows = missing, head_pos (3,), gaze (3,), objects (n_i, 3), area (n_i,)
+and the store row `index`, all torch tensors (metres, camera frame). `collate` pads a list of
+samples into a `Batch` with a boolean object mask: to the batch's largest object count, or to a
+fixed N_max (168 for GFIE/CAD-120, 278 for GAFA), keeping the largest masks (by pixel area) when a
+frame has more. `ContextDataset.batch(indices)` builds the same Batch straight from the arrays
+(vectorised gather; what the trainer uses). `BucketBatchSampler` groups frames of similar object
+counts so per-batch padding stays small.
+
+Frames with no finite view prior are left out (and counted); frames with unknown gaze are left out
+when `require_gaze` (training, evaluation). Objects with non-finite positions, and every object of
+a frame whose head position t_object is not finite, are dropped at load, so such a frame is a valid
+sample with zero objects (the model's null token). Missing pose joints stay NaN (the model's
+missing-joint policy handles them: ga3ce_prep/model/egocentric.py).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, Sampler
+
+from ..store import ContextStore, open_store
+
+log = logging.getLogger("ga3ce_prep.train")
+
+# The paper's fixed object padding per dataset (GFIE and CAD-120: 168, GAFA: 278).
+N_MAX: dict[str, int] = {"gfie": 168, "cad120": 168, "gafa": 278}
+
+
+@dataclass
+class Batch:
+    """A padded batch of B frames with S object slots (torch tensors).
+
+    view, head_pos, gaze: (B, 3); pose: (B, 30, 3) NaN = missing; objects: (B, S, 3) metres, padding
+    slots 0; mask: (B, S) bool, True = real object; index: (B,) int64 store rows.
+    """
+
+    view: torch.Tensor
+    pose: torch.Tensor
+    head_pos: torch.Tensor
+    gaze: torch.Tensor
+    objects: torch.Tensor
+    mask: torch.Tensor
+    index: torch.Tensor
+
+    def to(self, device: str | torch.device) -> "Batch":
+        return Batch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def store_fingerprint(store: ContextStore) -> str:
+    """SHA-256 over the store's root attributes and every frame and object array: two stores
+    with the same fingerprint hold the same data (checkpoints record it)."""
+    h = hashlib.sha256(json.dumps(store.attrs, sort_keys=True, default=str).encode())
+    for group in (store.frames, store.objects):
+        for name in sorted(group):
+            a = group[name]
+            h.update(name.encode())
+            h.update(str(a.shape).encode())
+            if a.dtype.kind in "OUT":  # variable-length strings
+                h.update("\x00".join(str(x) for x in a.ravel().tolist()).encode())
+            else:
+                h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _sorted_objects(store: ContextStore) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every frame's usable objects, largest mask first: (xyz (M',3) f32, area (M',), start (N,),
+    count (N,)). Non-finite objects and the objects of frames without a finite head are dropped."""
+    count = store.frames["obj_count"].astype(np.int64)
+    start = store.frames["obj_start"].astype(np.int64)
+    owner = np.repeat(np.arange(len(count)), count)
+    rows = (np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)) + np.repeat(start, count)
+    xyz = store.objects["xyz"][rows].astype(np.float32)
+    area = store.objects["area"][rows]
+    head_ok = np.isfinite(store.frames["head_pos"]).all(1)
+    keep = np.isfinite(xyz).all(1) & head_ok[owner]
+    order = np.lexsort((-area[keep].astype(np.float64), owner[keep]))
+    owner, xyz, area = owner[keep][order], xyz[keep][order], area[keep][order]
+    new_count = np.bincount(owner, minlength=len(count)).astype(np.int64)
+    new_start = np.cumsum(new_count) - new_count
+    return xyz, area, new_start, new_count
+
+
+class ContextDataset(Dataset):
+    """Per-frame GA3CE inputs of one or more splits of a store (see the module docstring).
+
+    store: a path or an already opened ContextStore (open it once and build one dataset per split).
+    split: "train" | "val" | "test", a sequence of them, or None for every frame.
+    require_gaze: leave out frames whose ground-truth gaze is unknown.
+    max_frames: keep only this many frames (an evenly spaced subset, for short runs).
+    """
+
+    def __init__(self, store: ContextStore | str | Path, split: str | Sequence[str] | None = None,
+                 require_gaze: bool = True, max_frames: int | None = None):
+        self.store = store if isinstance(store, ContextStore) else open_store(store)
+        s = self.store
+        n = len(s)
+        if split is None:
+            rows = np.arange(n)
+        else:
+            names = [split] if isinstance(split, str) else list(split)
+            rows = np.sort(np.concatenate([s.indices(name) for name in names]))
+        f = s.frames
+        usable = np.isfinite(f["view"][rows]).all(1) & (np.linalg.norm(f["view"][rows], axis=1) > 0)
+        self.n_no_view = int((~usable).sum())
+        if require_gaze:
+            gaze_ok = np.isfinite(f["gaze"][rows]).all(1)
+            self.n_no_gaze = int((usable & ~gaze_ok).sum())
+            usable &= gaze_ok
+        else:
+            self.n_no_gaze = 0
+        rows = rows[usable]
+        if max_frames is not None and max_frames < len(rows):
+            rows = rows[np.linspace(0, len(rows) - 1, max_frames).round().astype(np.int64)]
+        if self.n_no_view or self.n_no_gaze:
+            log.info("%s: left out %d frames without a view prior and %d without ground-truth gaze",
+                     s.path, self.n_no_view, self.n_no_gaze)
+        self.rows = rows
+        if not hasattr(s, "_ga3ce_objects"):  # shared by every dataset built on this store
+            s._ga3ce_objects = _sorted_objects(s)
+        self.xyz, self.area, start, count = s._ga3ce_objects
+        self.obj_start, self.obj_count = start[rows], count[rows]
+        self.view = np.ascontiguousarray(f["view"][rows], np.float32)
+        self.view /= np.linalg.norm(self.view, axis=1, keepdims=True)
+        self.pose = np.ascontiguousarray(f["pose"][rows], np.float32)
+        self.head_pos = np.ascontiguousarray(f["head_pos"][rows], np.float32)
+        self.gaze = np.ascontiguousarray(f["gaze"][rows], np.float32)
+        self.scene = np.asarray(f["scene"][rows])
+
+    @property
+    def dataset_name(self) -> str:
+        return str(self.store.attrs.get("dataset", {}).get("name", ""))
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        """Frame i of this dataset: view, pose, head_pos, gaze, objects (n_i, 3), area (n_i,), index."""
+        sl = slice(int(self.obj_start[i]), int(self.obj_start[i] + self.obj_count[i]))
+        return {"view": torch.from_numpy(self.view[i]), "pose": torch.from_numpy(self.pose[i]),
+                "head_pos": torch.from_numpy(self.head_pos[i]), "gaze": torch.from_numpy(self.gaze[i]),
+                "objects": torch.from_numpy(self.xyz[sl]), "area": torch.from_numpy(self.area[sl]),
+                "index": torch.tensor(int(self.rows[i]))}
+
+    def batch(self, indices: np.ndarray | Sequence[int], n_max: int | None = None) -> Batch:
+        """The Batch of dataset positions `indices`, gathered in one vectorised step; identical
+        to collate([self[i] for i in indices], n_max)."""
+        idx = np.asarray(indices, dtype=np.int64)
+        count = self.obj_count[idx]
+        if n_max is not None:
+            count = np.minimum(count, n_max)
+        S = int(n_max) if n_max is not None else int(count.max(initial=0))
+        slot = np.arange(S)
+        mask = slot[None, :] < count[:, None]
+        src = np.where(mask, self.obj_start[idx][:, None] + slot[None, :], 0)
+        objects = self.xyz[src.ravel()].reshape(len(idx), S, 3) if len(self.xyz) else np.zeros((len(idx), S, 3), np.float32)
+        objects = objects * mask[..., None]
+        return Batch(view=torch.from_numpy(self.view[idx]), pose=torch.from_numpy(self.pose[idx]),
+                     head_pos=torch.from_numpy(self.head_pos[idx]), gaze=torch.from_numpy(self.gaze[idx]),
+                     objects=torch.from_numpy(objects.astype(np.float32, copy=False)),
+                     mask=torch.from_numpy(mask), index=torch.from_numpy(self.rows[idx]))
+
+
+def collate(samples: Sequence[dict[str, torch.Tensor]], n_max: int | None = None) -> Batch:
+    """Pad per-frame samples into a Batch (a DataLoader collate_fn: functools.partial(collate,
+    n_max=168) for fixed padding). n_max None pads to the batch's largest object count; an int
+    pads every frame to exactly n_max slots, keeping each frame's n_max largest masks by area."""
+    counts = [len(s["objects"]) for s in samples]
+    S = int(n_max) if n_max is not None else max(counts, default=0)
+    B = len(samples)
+    objects = torch.zeros(B, S, 3)
+    mask = torch.zeros(B, S, dtype=torch.bool)
+    for b, s in enumerate(samples):
+        obj = s["objects"]
+        if len(obj) > S:
+            obj = obj[torch.argsort(s["area"].to(torch.float64), descending=True, stable=True)[:S]]
+        objects[b, :len(obj)] = obj
+        mask[b, :len(obj)] = True
+    stack = lambda k: torch.stack([s[k] for s in samples])  # noqa: E731
+    return Batch(view=stack("view"), pose=stack("pose"), head_pos=stack("head_pos"), gaze=stack("gaze"),
+                 objects=objects, mask=mask, index=stack("index"))
+
+
+class BucketBatchSampler(Sampler[list[int]]):
+    """Batches of frames with similar object counts (a DataLoader batch_sampler, or iterate it).
+
+    Each epoch the frames are shuffled, cut into windows of `window` batches, sorted by object count
+    inside each window, cut into batches, and the batches shuffled: per-batch padding stays small
+    while every epoch still mixes frames. bucket=False gives plain shuffled batches; shuffle=False
+    gives batches in count order (evaluation). Seeded by (seed, epoch): call set_epoch(e).
+    """
+
+    def __init__(self, counts: np.ndarray, batch_size: int, seed: int = 0, bucket: bool = True,
+                 shuffle: bool = True, window: int = 64, drop_last: bool = False):
+        self.counts = np.asarray(counts)
+        self.batch_size, self.seed, self.bucket, self.shuffle = batch_size, seed, bucket, shuffle
+        self.window, self.drop_last = window, drop_last
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def batches(self) -> list[np.ndarray]:
+        n, bs = len(self.counts), self.batch_size
+        rng = np.random.default_rng([self.seed, self.epoch])
+        if not self.shuffle:
+            order = np.argsort(self.counts, kind="stable") if self.bucket else np.arange(n)
+            return [order[i:i + bs] for i in range(0, n, bs) if not self.drop_last or i + bs <= n]
+        order = rng.permutation(n)
+        if self.bucket:
+            w = bs * self.window
+            order = np.concatenate([chunk[np.argsort(self.counts[chunk], kind="stable")]
+                                    for chunk in np.split(order, range(w, n, w))]) if n else order
+        out = [order[i:i + bs] for i in range(0, n, bs) if not self.drop_last or i + bs <= n]
+        return [out[j] for j in rng.permutation(len(out))]
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return (b.tolist() for b in self.batches())
+
+    def __len__(self) -> int:
+        n = len(self.counts)
+        return n // self.batch_size if self.drop_last else -(-n // self.batch_size)

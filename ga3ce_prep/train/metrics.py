@@ -1,0 +1,50 @@
+"""Gaze metrics in degrees (DESIGN.md §3; GAFA's conventions from research/gafa.md §4).
+
+3D MAE: mean angle between predicted and true directions. 2D MAE (GAFA): keep the camera-frame x
+and y of both vectors, re-normalise, take the angle; frames whose x-y part vanishes are skipped.
+Front / back (GAFA): front when the true gaze has z <= 0 (it points toward the camera). All means
+are plain per-frame means (GAFA's released code averages per batch; research/gafa.md §4).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..geometry import angular_error_deg
+
+
+def angular_errors_2d(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """(n,) angle in degrees between the x-y parts of pred and gt (n, 3); NaN where either is ~0."""
+    a, b = pred[:, :2], gt[:, :2]
+    ok = (np.linalg.norm(a, axis=1) > 1e-9) & (np.linalg.norm(b, axis=1) > 1e-9)
+    out = np.full(len(a), np.nan)
+    out[ok] = angular_error_deg(a[ok], b[ok])
+    return out
+
+
+def _mean(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if len(x) else float("nan")
+
+
+def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: list[str]) -> dict[str, Any]:
+    """Metrics of one method on n frames: pred, gt (n, 3); scene (n,) int codes.
+
+    Returns {n, mae3d, mae2d, median3d, front: {n, mae3d, mae2d}, back: {...},
+    per_scene: {name: {n, mae3d}}}; degrees.
+    """
+    e3 = angular_error_deg(pred, gt)
+    e2 = angular_errors_2d(pred, gt)
+    front = gt[:, 2] <= 0
+    out: dict[str, Any] = {"n": int(len(gt)), "mae3d": _mean(e3), "mae2d": _mean(e2),
+                           "median3d": float(np.median(e3)) if len(e3) else float("nan")}
+    for name, sel in (("front", front), ("back", ~front)):
+        out[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel]), "mae2d": _mean(e2[sel])}
+    per_scene = {}
+    for code in np.unique(scene):
+        sel = scene == code
+        name = scene_names[code] if 0 <= code < len(scene_names) else str(code)
+        per_scene[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel])}
+    out["per_scene"] = per_scene
+    return out

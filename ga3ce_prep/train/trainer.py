@@ -1,0 +1,256 @@
+"""The GA3CE training loop (the paper's recipe, DESIGN.md §3).
+
+AdamW (lr 1.4e-3, weight decay 0.1), a per-step schedule with 4 warm-up epochs then cosine decay,
+gradient clipping at L2 norm 0.1, batch 32, 20 epochs, the arccos loss, view-noise augmentation
+(on by default for GFIE stores). Seeded and deterministic on CPU: the batches, the augmentation
+and dropout of epoch e are drawn from (seed, e), so a resumed run matches an uninterrupted one.
+
+A run folder holds: config.json, last.pt (written atomically after every epoch, with the optimiser,
+for --resume), best.pt (lowest validation 3D MAE), history.csv and curves.png (loss and val MAE per
+epoch). Python API: `train(TrainConfig(store=..., out=...)) -> run folder`.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..errors import ConfigError
+from ..model import GA3CE, ModelConfig, angular_loss
+from ..store import open_store
+from .augment import view_noise
+from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
+from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
+from .evaluate import predict
+from .plots import plot_curves
+from .schedule import warmup_cosine_lr
+
+log = logging.getLogger("ga3ce_prep.train")
+
+VIEW_NOISE_DATASETS = ("gfie",)  # "auto" turns the augmentation on for these stores (paper: GFIE only)
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on. Defaults are the paper's recipe.
+
+    store / out: the store path and the run folder. epochs, batch_size, lr, weight_decay,
+    warmup_epochs, grad_clip: the recipe. view_noise: "auto" (on for GFIE stores), "on", "off";
+    view_noise_amplitude: a in eps ~ U[-a, a]^3. seed: every random draw. device: "cpu" | "cuda".
+    threads: torch CPU threads. n_max: pad objects to this fixed count (168 GFIE/CAD-120, 278 GAFA;
+    None = per-batch padding). bucket: group batches by object count. train_frames / val_frames:
+    use an evenly spaced subset (short runs). progress: show progress bars. model: ModelConfig.
+    """
+
+    store: str = ""
+    out: str = "runs/ga3ce"
+    epochs: int = 20
+    batch_size: int = 32
+    lr: float = 1.4e-3
+    weight_decay: float = 0.1
+    warmup_epochs: float = 4.0
+    grad_clip: float = 0.1
+    view_noise: str = "auto"
+    view_noise_amplitude: float = 0.5
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 2
+    n_max: int | None = None
+    bucket: bool = True
+    train_frames: int | None = None
+    val_frames: int | None = None
+    progress: bool = True
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.model, dict):
+            self.model = ModelConfig.from_dict(self.model)
+        if self.view_noise not in ("auto", "on", "off"):
+            raise ConfigError(f"view_noise must be auto, on or off, got {self.view_noise!r}")
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ConfigError(f"epochs ({self.epochs}) and batch_size ({self.batch_size}) must be >= 1")
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"device must be cpu or cuda, got {self.device!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "model"}
+        d["model"] = self.model.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def uses_view_noise(self, dataset_name: str) -> bool:
+        return self.view_noise == "on" or (self.view_noise == "auto" and dataset_name in VIEW_NOISE_DATASETS)
+
+
+def setup_torch(threads: int, device: str) -> torch.device:
+    """Thread count, deterministic algorithms, and the device (refusing cuda when absent)."""
+    torch.set_num_threads(threads)
+    if device == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError("--device cuda: this torch build sees no CUDA device (use --device cpu)")
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True, warn_only=True)
+    else:
+        torch.use_deterministic_algorithms(True)
+    return torch.device(device)
+
+
+def _epoch_seed(seed: int, epoch: int, stream: int) -> int:
+    return int(np.random.SeedSequence([seed, epoch, stream]).generate_state(1)[0])
+
+
+def _write_history(history: list[dict[str, Any]], out: Path) -> None:
+    if not history:
+        return
+    with open(out / "history.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(history[0]))
+        w.writeheader()
+        w.writerows(history)
+    plot_curves(history, out / "curves.png")
+
+
+def _val_mae(model: GA3CE, ds: ContextDataset | None, device: torch.device, n_max: int | None) -> float:
+    if ds is None or len(ds) == 0:
+        return float("nan")
+    pred = predict(model, ds, device=device, n_max=n_max)
+    cos = np.clip(np.sum(pred * ds.gaze, axis=1), -1, 1)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
+def train(config: TrainConfig, resume: bool = False, force: bool = False) -> Path:
+    """Train GA3CE on config.store into the run folder config.out; returns the run folder.
+
+    resume: continue from out/last.pt (refused if the store or the configuration changed, unless
+    force). force without resume: overwrite an existing run. An existing run is otherwise refused.
+    """
+    device = setup_torch(config.threads, config.device)
+    out = Path(config.out)
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    if last_path.exists() and not resume and not force:
+        raise CheckpointError(f"{out} already holds a run (last.pt): pass --resume to continue it, "
+                              "--force to overwrite it, or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    store = open_store(config.store)
+    fingerprint = store_fingerprint(store)
+    train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
+    if len(train_ds) == 0:
+        raise ConfigError(f"{config.store}: no training frames with a view prior and ground-truth gaze "
+                          f"(splits: {store.split_names}); build the store from a dataset with a train split")
+    val_ds = ContextDataset(store, "val", max_frames=config.val_frames) if "val" in store.split_names else None
+    if val_ds is not None and len(val_ds) == 0:
+        val_ds = None
+    if val_ds is None:
+        log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
+    noise_on = config.uses_view_noise(train_ds.dataset_name)
+    cfg = config.to_dict()
+    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": noise_on,
+                                                 "store_fingerprint": fingerprint}, indent=2))
+
+    torch.manual_seed(config.seed)
+    model = GA3CE(config.model).to(device)
+    state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
+    prior = np.degrees(np.arccos(np.clip(np.sum(val_ds.view * val_ds.gaze, 1), -1, 1))).mean() if val_ds else float("nan")
+
+    if not config.model.use_context:  # appearance only: g = v, nothing to learn
+        history = [{"epoch": config.epochs - 1, "step": 0, "lr": 0.0, "train_loss": float("nan"),
+                    "train_mae": float("nan"), "val_mae": float(prior), "val_prior_mae": float(prior),
+                    "seconds": 0.0, "samples_per_s": float("nan")}]
+        ckpt = {**state, "epoch": config.epochs - 1, "model": model.state_dict(), "history": history,
+                "best_val": float(prior)}
+        save_checkpoint(last_path, ckpt)
+        save_checkpoint(best_path, ckpt)
+        _write_history(history, out)
+        log.info("appearance only (use_context off): g = v, nothing to train")
+        return out
+
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
+    sampler = BucketBatchSampler(train_ds.obj_count if config.model.use_objects else np.zeros(len(train_ds)),
+                                 config.batch_size, seed=config.seed, bucket=config.bucket)
+    steps_per_epoch = len(sampler)
+    total_steps = steps_per_epoch * config.epochs
+    warmup_steps = max(1, round(config.warmup_epochs * steps_per_epoch))
+    history: list[dict[str, Any]] = []
+    best_val = math.inf
+    start_epoch = 0
+
+    if resume and last_path.exists():
+        ckpt = load_checkpoint(last_path)
+        problems = check_checkpoint(ckpt, last_path, fingerprint, cfg, force=force)
+        for p in problems:
+            log.warning("resuming despite a mismatch (--force): %s", p)
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        history = list(ckpt["history"])
+        best_val = float(ckpt["best_val"])
+        start_epoch = int(ckpt["epoch"]) + 1
+        if start_epoch >= config.epochs:
+            log.info("%s: all %d epochs are done already", out, config.epochs)
+            return out
+    elif resume:
+        log.warning("%s holds no last.pt: starting a new run", out)
+
+    use_noise = noise_on
+    for epoch in range(start_epoch, config.epochs):
+        sampler.set_epoch(epoch)
+        torch.manual_seed(_epoch_seed(config.seed, epoch, 0))           # dropout
+        noise_gen = torch.Generator().manual_seed(_epoch_seed(config.seed, epoch, 1))
+        model.train()
+        t0 = time.perf_counter()
+        step = epoch * steps_per_epoch
+        sum_loss, n_seen = 0.0, 0
+        bar = tqdm(sampler.batches(), desc=f"epoch {epoch + 1}/{config.epochs}", unit="batch",
+                   disable=not config.progress, leave=False, dynamic_ncols=True)
+        for idx in bar:
+            b = train_ds.batch(idx, config.n_max).to(device)
+            view = view_noise(b.view, noise_gen, config.view_noise_amplitude) if use_noise else b.view
+            g = model(view, b.pose, b.head_pos, b.objects, b.mask)
+            loss = angular_loss(g, b.gaze)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
+            lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            optimizer.step()
+            step += 1
+            sum_loss += loss.item() * len(idx)
+            n_seen += len(idx)
+            bar.set_postfix(loss=f"{loss.item():.4f}", mae=f"{np.degrees(sum_loss / n_seen):.2f}", lr=f"{lr:.2e}")
+        seconds = time.perf_counter() - t0
+        model.eval()
+        val = _val_mae(model, val_ds, device, config.n_max)
+        row = {"epoch": epoch, "step": step, "lr": lr, "train_loss": sum_loss / n_seen,
+               "train_mae": float(np.degrees(sum_loss / n_seen)), "val_mae": val,
+               "val_prior_mae": float(prior), "seconds": round(seconds, 2),
+               "samples_per_s": round(n_seen / seconds, 1)}
+        history.append(row)
+        improved = not (val >= best_val)  # NaN (no val split) counts as an improvement: best = last
+        if improved:
+            best_val = val if math.isfinite(val) else best_val
+        ckpt = {**state, "epoch": epoch, "model": model.state_dict(), "history": history,
+                "best_val": float(best_val)}
+        if improved:
+            save_checkpoint(best_path, ckpt)
+        save_checkpoint(last_path, {**ckpt, "optimizer": optimizer.state_dict()})
+        _write_history(history, out)
+        msg = (f"epoch {epoch + 1}/{config.epochs}: train MAE {row['train_mae']:.2f} deg, val MAE {val:.2f} deg "
+               f"(v prior {prior:.2f}), {row['samples_per_s']:.0f} samples/s")
+        if config.progress:
+            tqdm.write(msg)
+        log.info(msg)
+    return out
