@@ -150,7 +150,7 @@ def object_positions(depth: np.ndarray, K: np.ndarray, masks: np.ndarray,
     n_dropped = int(np.count_nonzero((area > 0) & ~keep))
     index = np.flatnonzero(keep)
     counts = n_valid[index]
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[:len(counts)].astype(np.int64)  # [] when no mask is kept
 
     # contiguous per-axis arrays: each median is a selection over one contiguous segment
     z = depth.ravel()[pix].astype(np.float32)
