@@ -93,3 +93,13 @@ def test_head_position_uses_window_median_and_falls_back():
         head_position(np.zeros_like(depth), K, np.array([30, 30, 70, 70]))
     with pytest.raises(FrameError, match="outside"):
         head_position(depth, K, np.array([200, 30, 240, 70]))
+
+
+def test_object_positions_with_no_kept_mask_is_empty():
+    depth = np.ones((8, 8), np.float32)
+    labels = np.full((8, 8), -1, np.int32)
+    labels[0, :3] = 0  # 3 pixels < min_points
+    for masks in (labels, np.zeros((2, 8, 8), bool), np.full((8, 8), -1, np.int32)):
+        res = object_positions(depth, K, masks, min_points=10)
+        assert res.xyz.shape == (0, 3) and res.index.size == 0
+    assert object_positions(depth, K, labels, min_points=10).n_dropped == 1
