@@ -3,12 +3,17 @@
 `segment_geometric` works on a point cloud sampled from the completed depth on a pixel grid (every
 `stride`-th pixel, so a 640x480 frame gives about 19k points at stride 4 instead of 307k):
 
-1. Planes: up to `max_planes` times, Open3D's RANSAC (`segment_plane`) finds the dominant plane of
-   the remaining points (floor, walls, table tops); a plane with fewer than `min_plane_frac` of the
-   points ends the search. Each plane's inliers are split into connected pieces by DBSCAN (two
-   table tops at one height are two segments). With `keep_planes` off, planes are only removed.
+1. Planes: up to `max_planes` times, Open3D's RANSAC (`segment_plane`, on every
+   `plane_subsample`-th free point) finds the dominant plane of the remaining points (floor, walls,
+   table tops); every free point within `plane_distance` joins it, and a plane with fewer than
+   `min_plane_frac` of the points ends the search. A plane's members are split into connected
+   pieces in the image grid (two table tops at one height are two segments). With `keep_planes`
+   off, planes are only removed.
 2. Clusters: DBSCAN (`cluster_eps` metres, `cluster_min_points`) on what is left; noise points get
-   no label.
+   no label. A cluster with more than `band_frac` of its points within `plane_band` of a plane is
+   that plane's noise (sensor noise grows with distance: a far wall leaves speckle off its plane)
+   and is dropped; objects standing on a plane keep their points near it. Segments with fewer
+   than `min_segment_points` grid points are dropped.
 3. Back to pixels: each grid point's label covers its stride x stride cell (nearest-neighbour
    upsampling); a full-resolution pixel keeps it only if its depth is within `depth_tol` metres
    of the grid point's, so labels do not bleed across depth edges.
@@ -33,12 +38,18 @@ class GeometricParams:
 
     stride: int = 4
     max_planes: int = 4
-    plane_distance: float = 0.02
+    plane_distance: float = 0.03
+    plane_band: float = 0.06
+    band_frac: float = 0.7
+    noise_ref_depth: float = 2.5
+    smooth: int = 5
     plane_iterations: int = 200
+    plane_subsample: int = 4
     min_plane_frac: float = 0.08
     keep_planes: bool = True
     cluster_eps: float = 0.06
     cluster_min_points: int = 8
+    min_segment_points: int = 12
     depth_tol: float = 0.05
     drop_subject: bool = True
     max_range: float = 8.0
@@ -52,6 +63,21 @@ def _dbscan(o3d, pts: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     return np.asarray(pc.cluster_dbscan(eps=eps, min_points=min_points, print_progress=False), np.int32)
 
 
+def _relabel_small(labels: np.ndarray, min_points: int) -> np.ndarray:
+    """Labels renumbered 0..k-1 in order of first appearance, segments under min_points -> -1."""
+    out = np.full_like(labels, -1)
+    ok = labels >= 0
+    if not ok.any():
+        return out
+    uniq, first, counts = np.unique(labels[ok], return_index=True, return_counts=True)
+    big = counts >= min_points
+    order = np.argsort(first[big], kind="stable")
+    lut = np.full(int(labels.max()) + 1, -1, labels.dtype)
+    lut[uniq[big][order]] = np.arange(int(big.sum()), dtype=labels.dtype)
+    out[ok] = lut[labels[ok]]
+    return out
+
+
 def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed: int = 0,
                       head_box: np.ndarray | None = None) -> np.ndarray:
     """Label image (H, W) int32 of planes and clusters of the completed depth (module docstring).
@@ -59,6 +85,7 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
     depth: (H, W) float32 metres, 0 = unknown. K: (3, 3). head_box: (4,) x1, y1, x2, y2 pixels of
     the subject (for drop_subject). seed: RANSAC seed (derive it from the frame id).
     """
+    import cv2
     import open3d as o3d
 
     H, W = depth.shape
@@ -66,39 +93,60 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
     off = s // 2
     vs = np.arange(off, H, s)
     us = np.arange(off, W, s)
-    grid_z = depth[np.ix_(vs, us)]
+    if p.smooth > 1:  # a median over the full-resolution depth tames sensor noise before sampling
+        z16 = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
+        grid_z = (cv2.medianBlur(z16, int(p.smooth)) * np.float32(0.001))[np.ix_(vs, us)]
+    else:
+        grid_z = depth[np.ix_(vs, us)]
     ok = (grid_z > 0) & (grid_z <= p.max_range)
     gv, gu = np.nonzero(ok)
     pts = back_project(us[gu].astype(np.float64), vs[gv].astype(np.float64), grid_z[gv, gu].astype(np.float64), K)
-    labels = np.full(len(pts), -1, np.int32)
-    next_label = 0
-    remaining = np.arange(len(pts))
-    o3d.utility.random.seed(int(seed) & 0x7FFFFFFF)
-    min_plane = max(3, int(p.min_plane_frac * len(pts)))
-    for _ in range(int(p.max_planes)):
-        if len(remaining) < min_plane:
-            break
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[remaining]))
-        _, inl = pc.segment_plane(distance_threshold=p.plane_distance, ransac_n=3,
-                                  num_iterations=int(p.plane_iterations))
-        inl = np.asarray(inl, np.int64)
-        if len(inl) < min_plane:
-            break
-        members = remaining[inl]
-        if p.keep_planes:
-            sub = _dbscan(o3d, pts[members], p.cluster_eps, p.cluster_min_points)
-            good = sub >= 0
-            labels[members[good]] = sub[good] + next_label
-            next_label += int(sub.max()) + 1 if good.any() else 0
-        keep = np.ones(len(remaining), bool)
-        keep[inl] = False
-        remaining = remaining[keep]
-    sub = _dbscan(o3d, pts[remaining], p.cluster_eps, p.cluster_min_points)
-    good = sub >= 0
-    labels[remaining[good]] = sub[good] + next_label
-
+    n = len(pts)
+    tol_scale = np.maximum(1.0, (pts[:, 2] / p.noise_ref_depth) ** 2)
     grid = np.full((len(vs), len(us)), -1, np.int32)
-    grid[gv, gu] = labels
+    labels = np.full(n, -1, np.int32)
+    free = np.ones(n, bool)  # not yet on a plane
+    in_band = np.zeros(n, bool)  # within plane_band of some plane
+    next_label = 0
+    o3d.utility.random.seed(int(seed) & 0x7FFFFFFF)
+    sub = np.arange(0, n, max(1, int(p.plane_subsample)))  # RANSAC runs on a subsample...
+    min_plane = max(3, int(p.min_plane_frac * n))
+    for _ in range(int(p.max_planes)):
+        cand = sub[free[sub]]
+        if len(cand) * max(1, int(p.plane_subsample)) < min_plane or len(cand) < 3:
+            break
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[cand]))
+        model, _ = pc.segment_plane(distance_threshold=p.plane_distance, ransac_n=3,
+                                    num_iterations=int(p.plane_iterations))
+        nrm, d0 = np.asarray(model[:3]), float(model[3])
+        # ...and the plane takes every free point near it; the tolerance grows with the sensor
+        # noise, as (z / noise_ref_depth)^2 beyond noise_ref_depth (Kinect-style noise)
+        dist = np.abs(pts @ nrm + d0) / tol_scale
+        members = free & (dist <= p.plane_distance)
+        if members.sum() < min_plane:
+            break
+        if p.keep_planes:  # connected pieces of the plane in the image grid (two table tops, not one)
+            mask = np.zeros(grid.shape, np.uint8)
+            mask[gv[members], gu[members]] = 1
+            k, comp = cv2.connectedComponents(mask, connectivity=8)
+            labels[members] = comp[gv[members], gu[members]] - 1 + next_label
+            next_label += k - 1
+        free &= ~members
+        in_band |= dist <= p.plane_band
+    rest = np.flatnonzero(free)
+    sub_labels = _dbscan(o3d, pts[rest], p.cluster_eps, p.cluster_min_points)
+    if len(rest) and sub_labels.max(initial=-1) >= 0:
+        # a cluster lying mostly in a plane's band is that plane's noise (a far wall's speckle), not
+        # an object; objects keep their points near the plane (their bottoms on a table)
+        k = int(sub_labels.max()) + 1
+        good = sub_labels >= 0
+        size = np.bincount(sub_labels[good], minlength=k)
+        banded = np.bincount(sub_labels[good], weights=in_band[rest[good]], minlength=k)
+        sub_labels[good & (banded[np.maximum(sub_labels, 0)] > p.band_frac * size[np.maximum(sub_labels, 0)])] = -1
+    good = sub_labels >= 0
+    labels[rest[good]] = sub_labels[good] + next_label
+    grid[gv, gu] = _relabel_small(labels, int(p.min_segment_points))
+
     # nearest-neighbour upsampling: pixel (v, u) belongs to grid cell ((v - off + s/2) // s, ...)
     cell_v = np.clip((np.arange(H) - off + s // 2) // s, 0, len(vs) - 1)
     cell_u = np.clip((np.arange(W) - off + s // 2) // s, 0, len(us) - 1)
@@ -108,7 +156,7 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
     if p.drop_subject and head_box is not None and np.all(np.isfinite(head_box)):
         cu = int(np.clip(0.5 * (head_box[0] + head_box[2]), 0, W - 1))
         cv = int(np.clip(0.5 * (head_box[1] + head_box[3]), 0, H - 1))
-        c = grid[min(len(vs) - 1, max(0, (cv - off + s // 2) // s)), min(len(us) - 1, max(0, (cu - off + s // 2) // s))]
+        c = grid[cell_v[cv], cell_u[cu]]
         if c >= 0:
             full[full == c] = -1
     return full

@@ -82,16 +82,11 @@ class OracleObjects(MaskObjects):
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
         rec = truth_record(self.params["truth"], frame.id)
         inst = np.asarray(rec.instance)
-        ids, kinds = instance_kinds(rec)
+        names = truth_record.object_kinds(self.params["truth"])
+        ids = np.asarray(rec.objects.instance, np.int64)
+        kinds = np.array([names[k] for k in np.asarray(rec.objects.kind, np.int64)], dtype=str)
         keep_ids = ids[np.isin(kinds, list(self.params["kinds"]))]
         n = int(max(inst.max(initial=-1), ids.max(initial=-1))) + 1
-        lut = np.full(n + 1, -1, np.int32)  # index n+... never used; -1 maps through lut[-1] = -1
+        lut = np.full(n + 1, -1, np.int32)  # lut[-1] (= lut[n]) stays -1: "no instance" maps to -1
         lut[keep_ids] = keep_ids
-        labels = lut[inst.astype(np.int64)]
-        return labels, np.ones(n, np.float32)
-
-
-def instance_kinds(rec) -> tuple[np.ndarray, np.ndarray]:
-    """(ids (K,) int, kinds (K,) str) of a truth record's object table."""
-    table = rec.objects
-    return np.asarray(table["id"], np.int64), np.asarray(table["kind"]).astype(str)
+        return lut[inst.astype(np.int64)], np.ones(n, np.float32)

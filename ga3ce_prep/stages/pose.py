@@ -39,6 +39,6 @@ class OraclePose(PoseBackend):
 
     def pose(self, frame: FrameRef) -> np.ndarray:
         p = self.params
-        truth = np.asarray(truth_record(p["truth"], frame.id).pose, np.float64)
+        truth = np.asarray(truth_record(p["truth"], frame.id, maps=False).pose, np.float64)
         return noisy_pose(truth, frame_rng(p["seed"], "pose/oracle", frame.id), p["sigma_body"], p["sigma_face"],
                           p["scale_sigma"], p["scale_bias"], p["offset_sigma"])

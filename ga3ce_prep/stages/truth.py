@@ -10,7 +10,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, FrameError
+from ..errors import ConfigError, FrameError, Ga3ceError
 
 _readers: dict[str, Any] = {}
 _lock = threading.Lock()
@@ -30,11 +30,17 @@ def _reader(path: str | Path) -> Any:
 class _TruthRecord:
     """`truth_record(path, frame_id)`: the synthetic truth of one frame; `.check(path)` before work."""
 
-    def __call__(self, path: str | Path, frame_id: str) -> Any:
+    def __call__(self, path: str | Path, frame_id: str, maps: bool = True) -> Any:
+        """The frame's `TruthFrame`; maps=False skips reading its depth and instance maps."""
         try:
-            return _reader(path).get(frame_id)
+            return _reader(path).get(frame_id, maps=maps)
         except KeyError:
-            raise FrameError(f"frame {frame_id} is not in the truth file {path}") from None
+            raise FrameError(f"frame {frame_id} is not in the truth file {path}: the dataset and its "
+                             "truth side-car do not match (regenerate both with `ga3ce-prep synth`)") from None
+
+    def object_kinds(self, path: str | Path) -> tuple[str, ...]:
+        """Names of the object table's kind codes (code i = name i)."""
+        return tuple(_reader(path).object_kinds)
 
     def check(self, path: str | Path) -> None:
         p = Path(path)
@@ -42,7 +48,10 @@ class _TruthRecord:
             raise ConfigError(f"truth file {p} not found: the oracle backends read the synthetic world's "
                               "truth side-car; write the world with `ga3ce-prep synth`, or point the "
                               "backend's `truth` parameter at its truth.h5")
-        _reader(p)
+        try:
+            _reader(p)
+        except Ga3ceError as e:
+            raise ConfigError(str(e)) from None
 
 
 truth_record = _TruthRecord()

@@ -45,7 +45,7 @@ class OracleView(ViewBackend):
 
     def view(self, frame: FrameRef) -> np.ndarray:
         p = self.params
-        rec = truth_record(p["truth"], frame.id)
+        rec = truth_record(p["truth"], frame.id, maps=False)
         gaze = np.asarray(rec.gaze, np.float64)
         if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
             raise FrameError(f"truth gaze of frame {frame.id} is not a direction")

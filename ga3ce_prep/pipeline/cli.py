@@ -1,0 +1,96 @@
+"""The pipeline's commands: `run`, `info`, `show`, `export` (registered in ga3ce_prep/cli.py)."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import click
+
+
+@click.command("run", context_settings={"show_default": True})
+@click.option("--pipeline", "-p", required=True,
+              help="Pipeline file (pipelines/<name>.yaml), or a bundled name: synthetic, synthetic-oracle, gfie, "
+                   "cad120, gafa, folder.")
+@click.option("--data", "-d", required=True, type=click.Path(file_okay=False),
+              help="Dataset root, in the format the pipeline's dataset.format names.")
+@click.option("--out", "-o", required=True, help="Output store (a directory, e.g. out/gfie.zarr).")
+@click.option("--workers", "-j", type=int, default=None,
+              help="Run on a local dask cluster of N single-threaded worker processes. Default: the local "
+                   "threaded scheduler.")
+@click.option("--scheduler", default=None,
+              help="Address of a running dask scheduler (tcp://host:8786); its workers must see --data, --out "
+                   "and the work directory at the same paths.")
+@click.option("--shard-size", type=int, default=None,
+              help="Frames per shard (the unit of caching and of tasks). Default: the pipeline's run.shard_size.")
+@click.option("--limit", type=int, default=None, help="Process only the first N frames (in the dataset's order).")
+@click.option("--work", type=click.Path(file_okay=False), default=None,
+              help="Work directory for the lock, the stage cache and finalize's scratch. Default: <out>.work")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
+@click.option("--summary-json", type=click.Path(dir_okay=False), default=None,
+              help="Also write the run summary as JSON to this file.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overrides, summary_json, quiet):
+    """Preprocess a dataset into a 3D context store (staged, cached, resumable).
+
+    Every check (pipeline schema, backends, model and data files, dataset layout, the output's lock)
+    runs before any work. Stages run on dask over shards of frames; each stage's output per shard is
+    cached atomically, so a killed run resumes where it stopped when you rerun the same command, and
+    a changed parameter recomputes only that stage and the stages after it.
+
+    \b
+    Example:
+      ga3ce-prep run --pipeline synthetic --data out/synthetic --out out/synthetic.zarr
+    """
+    from .run import run_pipeline
+
+    s = run_pipeline(pipeline, data, out, workers=workers, scheduler=scheduler, shard_size=shard_size,
+                     limit=limit, work_dir=work, overrides=list(overrides), progress=not quiet)
+    click.echo(s.format())
+    if summary_json:
+        Path(summary_json).write_text(json.dumps(s.as_dict(), indent=2))
+
+
+@click.command("info")
+@click.argument("store", type=click.Path())
+@click.option("--failures", "max_failures", type=int, default=8, show_default=True,
+              help="How many failure messages to list.")
+@click.option("--json", "as_json", is_flag=True, help="Print the root attributes (provenance, summary) as JSON instead.")
+def info(store, max_failures, as_json):
+    """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures."""
+    from ..store import open_store
+    from .inspect import describe_store
+
+    s = open_store(store)
+    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures))
+
+
+@click.command("show")
+@click.argument("store", type=click.Path())
+@click.argument("frame_id")
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False),
+              help="F.png: the image with head box, projected objects, t_object, v and ground-truth gaze "
+                   "arrows; F.ply: the 3D context as a point set (Open3D).")
+@click.option("--data", type=click.Path(file_okay=False), default=None,
+              help="Dataset root, if it moved since the store was made (for the image and depth).")
+def show(store, frame_id, out, data):
+    """Draw one frame's 3D context as a PNG, or write it as a PLY point set."""
+    from ..store import open_store
+    from ..viz import show as show_frame
+
+    path = show_frame(open_store(store), frame_id, out, data)
+    click.echo(f"wrote {path}")
+
+
+@click.command("export")
+@click.argument("store", type=click.Path())
+@click.argument("out", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["hdf5"]), default="hdf5", show_default=True,
+              help="Output format (HDF5: the store's groups and arrays, names unchanged).")
+def export(store, out, fmt):
+    """Export a store's arrays to HDF5 for other trainers (same names, shapes and dtypes)."""
+    from .export import export_hdf5
+
+    path = export_hdf5(store, out)
+    click.echo(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB)")

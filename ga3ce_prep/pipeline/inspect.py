@@ -1,0 +1,67 @@
+"""`ga3ce-prep info`: what a store holds, as text (splits, scenes, frames, object-count histogram,
+ground truth present, provenance, failures)."""
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from ..store import ContextStore
+
+HIST_EDGES = (0, 1, 5, 10, 20, 40, 80, 160)
+
+
+def _bar(n: int, peak: int, width: int = 30) -> str:
+    return "#" * (int(round(width * n / peak)) if peak else 0)
+
+
+def describe_store(s: ContextStore, max_failures: int = 8) -> str:
+    fr, a = s.frames, s.attrs
+    n = len(s)
+    lines = [f"store        {s.path}",
+             f"schema       {a.get('schema_version')}   package {a.get('package_version')}"]
+    ds = a.get("dataset", {})
+    pl = a.get("pipeline", {})
+    lines.append(f"dataset      {ds.get('name')} at {ds.get('root')}")
+    lines.append(f"pipeline     {pl.get('name', '')} ({pl.get('file')}, sha256 {str(pl.get('sha256', ''))[:12]})")
+    summ = a.get("summary", {})
+    lines.append(f"frames       {n} (of {summ.get('frames_in_dataset', n)} in the dataset; "
+                 f"{summ.get('frames_dropped', 0)} dropped)")
+    split_counts = Counter(fr["split"].tolist())
+    lines.append("splits       " + ", ".join(f"{name} {split_counts.get(k, 0)}" for k, name in enumerate(s.split_names)))
+    scene_counts = Counter(fr["scene"].tolist())
+    shown = ", ".join(f"{s.scene_names[k]} {c}" for k, c in sorted(scene_counts.items())[:8])
+    more = f", ... ({len(scene_counts)} scenes)" if len(scene_counts) > 8 else ""
+    lines.append(f"scenes       {len(scene_counts)}: {shown}{more}")
+    counts = fr["obj_count"].astype(np.int64)
+    m = len(s.objects["xyz"])
+    lines.append(f"objects      {m} (per frame: mean {counts.mean() if n else 0:.1f}, median "
+                 f"{np.median(counts) if n else 0:.0f}, max {counts.max(initial=0)})")
+    edges = [*HIST_EDGES, max(HIST_EDGES[-1] + 1, int(counts.max(initial=0)) + 1)]
+    bins = [(lo, hi) for lo, hi in zip(edges[:-1], edges[1:])]
+    hist = [int(((counts >= lo) & (counts < hi)).sum()) for lo, hi in bins]
+    peak = max(hist, default=0)
+    for (lo, hi), c in zip(bins, hist):
+        label = f"{lo}" if hi == lo + 1 else f"{lo}-{hi - 1}"
+        lines.append(f"  {label:>9} objects  {c:>7}  {_bar(c, peak)}")
+    gaze_ok = int(np.isfinite(fr["gaze"]).all(1).sum())
+    pose_ok = int(np.isfinite(fr["pose"]).all((1, 2)).sum())
+    lines.append(f"ground truth gaze in {gaze_ok}/{n} frames; pose complete in {pose_ok}/{n}")
+    lines.append("stages")
+    for stage, p in a.get("stages", {}).items():
+        params = ", ".join(f"{k}={v}" for k, v in (p.get("params") or {}).items())
+        tag = "  [ORACLE: synthetic truth]" if p.get("oracle") else ""
+        models = "; models " + ", ".join(f"{k} {v[:12]}" for k, v in p.get("models", {}).items()) if p.get("models") else ""
+        lines.append(f"  {stage:<8} {p.get('backend')}{tag}: {params}{models}")
+    f = s.failures
+    nf = len(f.get("frame_id", []))
+    lines.append(f"failures     {nf}")
+    if nf:
+        table = Counter(zip(f["stage"].tolist(), f["error"].tolist(), f["action"].tolist()))
+        for (stage, err, action), c in sorted(table.items()):
+            lines.append(f"  {stage:<8} {err:<22} {action:<9} {c}")
+        for k in range(min(nf, max_failures)):
+            lines.append(f"  - {f['frame_id'][k]} [{f['stage'][k]}] {f['message'][k]}")
+        if nf > max_failures:
+            lines.append(f"  ... {nf - max_failures} more (read them with open_store(path).failures)")
+    return "\n".join(lines)
