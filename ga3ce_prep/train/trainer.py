@@ -131,11 +131,14 @@ def _val_mae(model: GA3CE, ds: ContextDataset | None, device: torch.device, n_ma
     return float(np.degrees(np.arccos(cos)).mean())
 
 
-def train(config: TrainConfig, resume: bool = False, force: bool = False) -> Path:
+def train(config: TrainConfig, resume: bool = False, force: bool = False,
+          stop_after_epochs: int | None = None) -> Path:
     """Train GA3CE on config.store into the run folder config.out; returns the run folder.
 
     resume: continue from out/last.pt (refused if the store or the configuration changed, unless
     force). force without resume: overwrite an existing run. An existing run is otherwise refused.
+    stop_after_epochs: return after this many epochs of this call (a time-boxed job); the run is
+    then continued with resume=True and ends identical to an uninterrupted one.
     """
     device = setup_torch(config.threads, config.device)
     out = Path(config.out)
@@ -205,7 +208,8 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False) -> Pat
         log.warning("%s holds no last.pt: starting a new run", out)
 
     use_noise = noise_on
-    for epoch in range(start_epoch, config.epochs):
+    end_epoch = config.epochs if stop_after_epochs is None else min(config.epochs, start_epoch + stop_after_epochs)
+    for epoch in range(start_epoch, end_epoch):
         sampler.set_epoch(epoch)
         torch.manual_seed(_epoch_seed(config.seed, epoch, 0))           # dropout
         noise_gen = torch.Generator().manual_seed(_epoch_seed(config.seed, epoch, 1))

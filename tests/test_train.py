@@ -1,0 +1,146 @@
+"""The training loop, checkpoints, evaluation, ablation table and CLI, on small toy stores."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from store_fixtures import ToyKnobs, write_toy_store
+
+from ga3ce_prep.cli import cli
+from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
+from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
+
+torch.set_num_threads(2)
+# the paper's widths with fewer layers: the training machinery is what these tests exercise
+SMALL = dict(num_encoder_layers=1, num_decoder_layers=1, dim_feedforward=128, head_hidden=128)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    knobs = ToyKnobs(p_missing_pose=0.1, p_no_objects=0.1)
+    return write_toy_store(tmp_path_factory.mktemp("s") / "toy.zarr", 320, seed=5, frames_per_scene=20, knobs=knobs)
+
+
+def _cfg(store, out, **kw):
+    base = dict(store=str(store), out=str(out), epochs=2, batch_size=16, train_frames=48, val_frames=32,
+                warmup_epochs=1, progress=False, model=ModelConfig(**SMALL))
+    return TrainConfig(**{**base, **kw})
+
+
+def _weights(run):
+    return load_checkpoint(run / "last.pt")["model"]
+
+
+def _same(a, b):
+    return all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
+    a = train(_cfg(store, tmp_path / "a", view_noise="on"))
+    b = train(_cfg(store, tmp_path / "b", view_noise="on"))
+    assert _same(_weights(a), _weights(b))                  # same seed, same weights
+    c = train(_cfg(store, tmp_path / "c", view_noise="on", seed=1))
+    assert not _same(_weights(a), _weights(c))
+    # killed after one epoch, then resumed: identical to the uninterrupted run
+    d = train(_cfg(store, tmp_path / "d", view_noise="on"), stop_after_epochs=1)
+    assert load_checkpoint(d / "last.pt")["epoch"] == 0
+    train(_cfg(store, tmp_path / "d", view_noise="on"), resume=True)
+    assert _same(_weights(a), _weights(d))
+    hist = (a / "history.csv").read_text().splitlines()
+    assert len(hist) == 3 and hist[0].startswith("epoch,step,lr,train_loss,train_mae,val_mae")
+    assert (a / "curves.png").stat().st_size > 1000 and (a / "best.pt").exists()
+    cfg = json.loads((a / "config.json").read_text())
+    assert cfg["view_noise_resolved"] is True and cfg["lr"] == 1.4e-3
+
+
+def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
+    run = train(_cfg(store, tmp_path / "r", epochs=1))
+    ck = torch.load(run / "last.pt", weights_only=True)    # tensors and plain types only
+    assert ck["config"]["model"]["rotation"] == "cyclotorsion" and "optimizer" in ck
+    assert "optimizer" not in torch.load(run / "best.pt", weights_only=True)
+    with pytest.raises(CheckpointError, match="--resume"):
+        train(_cfg(store, tmp_path / "r", epochs=1))
+    with pytest.raises(CheckpointError, match="lr: checkpoint 0.0014, now 0.001"):
+        train(_cfg(store, tmp_path / "r", epochs=1, lr=1e-3), resume=True)
+    other = write_toy_store(tmp_path / "other.zarr", 120, seed=9)
+    with pytest.raises(CheckpointError, match="store fingerprint"):
+        evaluate(other, run / "best.pt", split="test", cdf_path=None)
+    r = evaluate(other, run / "best.pt", split="test", cdf_path=None, force=True)
+    assert r["n_frames"] > 0
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="cannot read"):
+        load_checkpoint(tmp_path / "bad.pt")
+
+
+def test_short_training_learns(tmp_path):
+    # a world where the pose carries most of the signal: the head turns almost all the way
+    knobs = ToyKnobs(view_noise_deg=25, head_fraction=(0.9, 1.0), face_noise=0.005, body_noise=0.005)
+    st = write_toy_store(tmp_path / "easy.zarr", 600, seed=2, knobs=knobs)
+    cfg = TrainConfig(store=str(st), out=str(tmp_path / "run"), epochs=3, batch_size=32, warmup_epochs=0.5,
+                      progress=False, model=ModelConfig(use_objects=False, **SMALL))
+    run = train(cfg)
+    r = evaluate(st, run / "best.pt", split="test", cdf_path=None)
+    prior = r["methods"]["view_prior"]["mae3d"]
+    assert r["methods"]["model"]["mae3d"] < 0.85 * prior, format_eval_table(r)
+    hist = load_checkpoint(run / "last.pt")["history"]
+    assert hist[-1]["train_mae"] < hist[0]["train_mae"]
+
+
+def test_evaluate_reports_model_and_baselines(store, tmp_path):
+    run = train(_cfg(store, tmp_path / "r", epochs=1))
+    r = evaluate(store, run / "best.pt", split="test", json_path=tmp_path / "e.json")
+    m = r["methods"]
+    assert set(m) == {"model", "view_prior", "head_from_pose", "snap_to_object"}
+    for name, res in m.items():
+        assert res["n"] == r["n_frames"] == res["front"]["n"] + res["back"]["n"]
+        assert sum(s["n"] for s in res["per_scene"].values()) == r["n_frames"]
+        assert 0 < res["mae3d"] < 180
+    assert r["beats"] == {k: m["model"]["mae3d"] < m[k]["mae3d"] for k in ("view_prior", "head_from_pose", "snap_to_object")}
+    assert json.loads((tmp_path / "e.json").read_text())["methods"]["model"]["mae3d"] == pytest.approx(m["model"]["mae3d"])
+    assert (run / "eval_test_cdf.png").stat().st_size > 1000
+    table = format_eval_table(r)
+    from ga3ce_prep.train.evaluate import METHODS
+    for key, beats in r["beats"].items():   # the table says which baselines the model does not beat
+        assert (f"  beats {METHODS[key]}" in table) == beats
+        assert (f"does NOT beat {METHODS[key]}" in table) == (not beats)
+    # appearance only: the checkpoint reproduces the v prior exactly
+    app = train(_cfg(store, tmp_path / "app", model=ModelConfig(use_context=False, **SMALL)))
+    ra = evaluate(store, app / "best.pt", split="test", cdf_path=None)
+    assert ra["methods"]["model"]["mae3d"] == pytest.approx(ra["methods"]["view_prior"]["mae3d"], abs=1e-4)
+
+
+def test_ablate_table(store, tmp_path):
+    base = _cfg(store, tmp_path, epochs=1, train_frames=32)
+    s = ablate(base, tmp_path / "abl", rows=["appearance", "no-objects", "full"])
+    assert [r["name"] for r in s["rows"]] == ["appearance", "no-objects", "full"]
+    assert s["rows"][0]["ratio"] == pytest.approx(1.0, abs=1e-5)
+    t = s["table"]
+    assert "Table 4" in t and "Table 5" in t and "19.40" in t and "13.10" in t and "11.10" in t
+    assert ("the full model is best" in t) == s["full_best"]
+    assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
+    assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
+    # rerunning reuses the finished runs
+    mtime = (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime
+    ablate(base, tmp_path / "abl", rows=["full"])
+    assert (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime == mtime
+
+
+def test_cli_train_eval(store, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "cli"
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--epochs", "1", "--train-frames", "32",
+                              "--val-frames", "16", "--no-progress", "--no-ga3ce", "--model-set", "cone_bias_scale=2",
+                              "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
+    assert res.exit_code == 0, res.output
+    ck = load_checkpoint(out / "best.pt")
+    assert ck["config"]["model"]["rotation"] == "none" and ck["config"]["model"]["encoding"] == "standard"
+    assert ck["config"]["model"]["cone_bias_scale"] == 2
+    res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(out / "best.pt"), "--cdf", "none"])
+    assert res.exit_code == 0, res.output
+    assert "GA3CE (model)" in res.output and "head direction from pose" in res.output
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--no-ga3ce", "--rotation", "axis_angle"])
+    assert res.exit_code != 0 and "--no-ga3ce" in res.output
+    res = runner.invoke(cli, ["ablate", "--help"])
+    assert res.exit_code == 0 and "no-cyclotorsion" in res.output
