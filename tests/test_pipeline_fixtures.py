@@ -214,3 +214,23 @@ def pipeline_dict(**stage_params) -> dict:
     for stage, params in stage_params.items():
         p["stages"][stage].setdefault("params", {}).update(params)
     return p
+
+
+# --- the synthetic world (ga3ce_prep.synthetic), small, shared by the pipeline tests -------------
+import pytest  # noqa: E402
+
+SYNTH_W = 160  # small frames keep the tests fast
+
+
+@pytest.fixture(scope="session")
+def synth_world(tmp_path_factory) -> Path:
+    """A 160x120 synthetic GFIE-format world (3 scenes x 4 frames) with its truth.h5."""
+    from ga3ce_prep.synthetic.generate import generate
+
+    root = tmp_path_factory.mktemp("synth") / "gfie"
+    generate("gfie", root, scenes=3, frames_per_scene=4, seed=5, width=SYNTH_W, progress=False)
+    return root
+
+
+# the bundled pipelines, with the geometric segmenter's grid scaled to 160x120 frames
+SMALL = ["stages.objects.params.stride=1"]

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from .faults import fault
+
 
 def _canon(obj: Any) -> Any:
     if isinstance(obj, dict):
@@ -119,9 +121,11 @@ class Cache:
                 np.savez(f, **arrays)
                 f.flush()
                 os.fsync(f.fileno())
+            fault("cache.tmp")
             os.replace(tmp, p)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
         _fsync_dir(p.parent)
+        fault("cache.saved")
         return p

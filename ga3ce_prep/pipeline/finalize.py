@@ -26,6 +26,7 @@ from ..skeleton import N_JOINTS
 from ..stages import DROPS_FRAME, STAGES
 from ..store import StoreWriter
 from .cache import Cache
+from .faults import fault
 from .tasks import Shard
 
 
@@ -152,11 +153,13 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
         frames, objects, fails = shard_block(shard, _entries(cache, shard), counts)
         frames["split"] = np.array([_split_code(s) for s in frames["split"]], np.int8)
         frames["scene"] = np.array([writer.scene_code(s) for s in frames["scene"]], np.int32)
-        writer.append_frames(frames, objects)
+        if len(frames["id"]):  # (StoreWriter.append_frames does not take an empty block)
+            writer.append_frames(frames, objects)
         if fails:
             cols = list(zip(*fails))
             writer.append_failures({k: np.array(v, dtype=str) for k, v in
                                     zip(("frame_id", "stage", "error", "message", "action"), cols)})
+        fault("finalize.shard")
     counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
     attrs = {**attrs, "summary": counts.as_attrs(), "run": {**attrs.get("run", {}), "key": run_key}}
     writer.close(attrs)
@@ -164,8 +167,10 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
     old = work / "previous.zarr"
     if old.exists():
         shutil.rmtree(old)
+    fault("finalize.swap")
     if out.exists():
         os.rename(out, old)
+        fault("finalize.aside")
     os.rename(partial, out)
     if old.exists():
         shutil.rmtree(old)

@@ -13,6 +13,7 @@ workers must see the same data, cache and output paths.
 """
 from __future__ import annotations
 
+import logging
 import os
 from contextlib import ExitStack
 from typing import Any
@@ -104,7 +105,7 @@ def _execute_distributed(dsk: dict, keys: list, bars: _Bars, workers: int | None
         else:
             cluster = stack.enter_context(LocalCluster(
                 n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
-                silence_logs="error"))
+                silence_logs=logging.ERROR))
             client = stack.enter_context(Client(cluster))
         futures = client.get(dsk, keys, sync=False)
         key_of = {f.key: k for f, k in zip(futures, keys)}

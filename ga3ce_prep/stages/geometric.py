@@ -1,10 +1,10 @@
-"""The weight-free geometric segmenter (Open3D): planes by RANSAC, the rest by DBSCAN.
+"""The weight-free geometric segmenter: planes by RANSAC, the rest by DBSCAN (Open3D).
 
 `segment_geometric` works on a point cloud sampled from the completed depth on a pixel grid (every
 `stride`-th pixel, so a 640x480 frame gives about 19k points at stride 4 instead of 307k):
 
-1. Planes: up to `max_planes` times, Open3D's RANSAC (`segment_plane`, on every
-   `plane_subsample`-th free point) finds the dominant plane of the remaining points (floor, walls,
+1. Planes: up to `max_planes` times, RANSAC (`ransac_plane`, on every `plane_subsample`-th free
+   point) finds the dominant plane of the remaining points (floor, walls,
    table tops); every free point within `plane_distance` joins it, and a plane with fewer than
    `min_plane_frac` of the points ends the search. A plane's members are split into connected
    pieces in the image grid (two table tops at one height are two segments). With `keep_planes`
@@ -21,7 +21,10 @@
    is estimated) is removed.
 
 Returns an (H, W) int32 label image, -1 = no segment, for `geometry.object_positions`. RANSAC is
-seeded per frame (Open3D's global seed), so a frame gives the same segments in every run.
+vectorised numpy with a generator seeded from the frame id, so a frame gives the same segments in
+every run whatever the sharding, scheduler or order. (Open3D 0.20's `segment_plane` is not
+reproducible run to run even with `o3d.utility.random.seed`: its parallel sampling depends on
+thread scheduling, which would break identical resumes. Open3D's DBSCAN is reproducible.)
 """
 from __future__ import annotations
 
@@ -61,6 +64,29 @@ def _dbscan(o3d, pts: np.ndarray, eps: float, min_points: int) -> np.ndarray:
         return np.zeros(0, np.int32)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
     return np.asarray(pc.cluster_dbscan(eps=eps, min_points=min_points, print_progress=False), np.int32)
+
+
+def ransac_plane(pts: np.ndarray, distance: float, iterations: int,
+                 rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """The plane (unit normal (3,), offset d; n . p + d = 0) with the most points of pts (n, 3)
+    within `distance` metres among `iterations` random 3-point hypotheses, refitted by least
+    squares to its inliers. Vectorised over hypotheses; reproducible for a given rng."""
+    n = len(pts)
+    idx = rng.integers(0, n, size=(iterations, 3))
+    a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norm = np.linalg.norm(normals, axis=1)
+    ok = norm > 1e-9
+    normals = normals[ok] / norm[ok, None]
+    offsets = -np.sum(normals * a[ok], axis=1)
+    if not len(normals):
+        return np.array([0.0, 0.0, 1.0]), 0.0
+    counts = (np.abs(pts @ normals.T + offsets) <= distance).sum(axis=0)
+    best = int(np.argmax(counts))  # first of the ties
+    inl = pts[np.abs(pts @ normals[best] + offsets[best]) <= distance]
+    centre = inl.mean(axis=0)
+    nrm = np.linalg.svd(inl - centre, full_matrices=False)[2][-1]  # least-squares normal
+    return nrm, float(-nrm @ centre)
 
 
 def _relabel_small(labels: np.ndarray, min_points: int) -> np.ndarray:
@@ -108,17 +134,14 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
     free = np.ones(n, bool)  # not yet on a plane
     in_band = np.zeros(n, bool)  # within plane_band of some plane
     next_label = 0
-    o3d.utility.random.seed(int(seed) & 0x7FFFFFFF)
+    rng = np.random.default_rng(int(seed))
     sub = np.arange(0, n, max(1, int(p.plane_subsample)))  # RANSAC runs on a subsample...
     min_plane = max(3, int(p.min_plane_frac * n))
     for _ in range(int(p.max_planes)):
         cand = sub[free[sub]]
         if len(cand) * max(1, int(p.plane_subsample)) < min_plane or len(cand) < 3:
             break
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[cand]))
-        model, _ = pc.segment_plane(distance_threshold=p.plane_distance, ransac_n=3,
-                                    num_iterations=int(p.plane_iterations))
-        nrm, d0 = np.asarray(model[:3]), float(model[3])
+        nrm, d0 = ransac_plane(pts[cand], p.plane_distance, int(p.plane_iterations), rng)
         # ...and the plane takes every free point near it; the tolerance grows with the sensor
         # noise, as (z / noise_ref_depth)^2 beyond noise_ref_depth (Kinect-style noise)
         dist = np.abs(pts @ nrm + d0) / tol_scale

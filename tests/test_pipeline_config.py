@@ -1,0 +1,105 @@
+"""Pipeline files: schema validation naming the key, defaults, files checked before any work."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ga3ce_prep.errors import ConfigError, ModelFileError
+from ga3ce_prep.pipeline import load_pipeline, run_pipeline
+from ga3ce_prep.pipeline.config import PIPELINES_DIR
+from test_pipeline_fixtures import synth_world  # noqa: F401  (fixture)
+
+
+def _base():
+    return yaml.safe_load((PIPELINES_DIR / "synthetic.yaml").read_text())
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in PIPELINES_DIR.glob("*.yaml")))
+def test_bundled_pipelines_are_valid(name, tmp_path):
+    conf = load_pipeline(name, tmp_path, check_files=False)
+    assert conf.name == name and conf.shard_size >= 1
+    assert set(conf.stages) == {"input", "depth", "objects", "head", "pose", "view"}
+
+
+def test_defaults_are_filled_in_and_data_paths_resolved(tmp_path):
+    conf = load_pipeline("synthetic", tmp_path, check_files=False)
+    assert conf.stages["head"].params == {"window_fracs": [0.2, 0.5, 1.0], "min_points": 3}
+    assert conf.stages["view"].params["truth"] == tmp_path.resolve() / "truth.h5"
+    assert conf.stages["view"].data_files == {"truth": tmp_path.resolve() / "truth.h5"}
+    assert conf.config["stages"]["depth"]["params"]["keep_valid"] is True
+
+
+@pytest.mark.parametrize("override, key, fragment", [
+    ({"stages.view.params.mean_error_deg": -5}, "stages.view.params.mean_error_deg", "less than the minimum"),
+    ({"stages.view.params.mean_eror_deg": 5}, "stages.view.params", "'mean_eror_deg' was unexpected"),
+    ({"stages.depth.backend": "lidar"}, "stages.depth.backend", "is not one of"),
+    ({"run.shard_size": 0}, "run.shard_size", "less than the minimum"),
+    ({"dataset.format": "kitti"}, "dataset.format", "is not one of"),
+    ({"stages.objects": {"backend": "oracle", "params": {"kinds": ["chair"]}}}, "stages.objects.params.kinds.0",
+     "is not one of"),
+])
+def test_schema_errors_name_the_key(tmp_path, override, key, fragment):
+    with pytest.raises(ConfigError) as e:
+        load_pipeline(_base(), tmp_path, overrides=override, check_files=False)
+    assert f"  {key}: " in str(e.value) and fragment in str(e.value)
+
+
+def test_missing_stage_and_bad_yaml(tmp_path):
+    p = _base()
+    del p["stages"]["pose"]
+    with pytest.raises(ConfigError, match=r"stages: 'pose' is a required property"):
+        load_pipeline(p, tmp_path, check_files=False)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nstages: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_pipeline(bad, tmp_path)
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        load_pipeline("synthetic", tmp_path, overrides=["stages.view.params.seed"])
+
+
+def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
+    with pytest.raises(ModelFileError) as e:
+        run_pipeline("gafa", tmp_path, tmp_path / "s.zarr", progress=False)
+    msg = str(e.value)
+    assert "stages.depth.params.model" in msg and "zoedepth.onnx does not exist" in msg and "export" in msg
+    assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "s.zarr.work").exists()
+
+
+def test_planned_backend_is_not_available_yet(tmp_path):
+    enc, dec = tmp_path / "enc.onnx", tmp_path / "dec.onnx"
+    enc.write_bytes(b"x")
+    dec.write_bytes(b"x")
+    with pytest.raises(ConfigError, match=r"stages.objects.backend: 'mobilesam' .* is not available yet.*geometric, oracle"):
+        load_pipeline(_base(), tmp_path, overrides={"stages.objects": {"backend": "mobilesam", "params": {
+            "encoder": str(enc), "decoder": str(dec)}}})
+
+
+def test_missing_data_files_fail_before_any_work(tmp_path, synth_world):
+    with pytest.raises(ConfigError, match=r"stages.pose.params.file: precomputed file .*nope.h5 not found"):
+        load_pipeline(_base(), synth_world, overrides={"stages.pose": {"backend": "precomputed",
+                                                                       "params": {"file": "{data}/nope.h5"}}})
+    with pytest.raises(ConfigError, match="truth file .*truth.h5 not found.*ga3ce-prep synth"):
+        load_pipeline("synthetic", tmp_path)
+    bad = tmp_path / "pose.npz"
+    np.savez(bad, frame_id=np.array(["a"]), pose=np.zeros((1, 17, 3)))
+    with pytest.raises(ConfigError, match=r"'pose' has shape \(1, 17, 3\)"):
+        load_pipeline(_base(), synth_world, overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(bad)}}})
+
+
+def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
+    from ga3ce_prep.store import open_store
+    from ga3ce_prep.synthetic.truth import TruthReader
+
+    truth = TruthReader(synth_world / "truth.h5")
+    ids = truth.frame_ids[1:]  # the first frame has no pose in the file
+    np.savez(tmp_path / "pose.npz", frame_id=np.array(ids), pose=np.stack([truth.get(i, maps=False).pose for i in ids]))
+    s = run_pipeline("synthetic-oracle", synth_world, tmp_path / "s.zarr", progress=False,
+                     overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(tmp_path / "pose.npz")}}})
+    st = open_store(tmp_path / "s.zarr")
+    i = int(np.flatnonzero(st.frames["id"] == truth.frame_ids[0])[0])
+    assert s.frames_kept == 12 and s.degraded_by_stage == {"pose": 1}
+    assert np.isnan(st.frames["pose"][i]).all()
+    j = int(np.flatnonzero(st.frames["id"] == ids[0])[0])
+    np.testing.assert_allclose(st.frames["pose"][j], truth.get(ids[0], maps=False).pose, atol=1e-6)
+    assert st.failures["action"].tolist() == ["degraded"] and "not in" in st.failures["message"][0]

@@ -1,0 +1,285 @@
+"""`run_pipeline` end to end on the synthetic world: store contents, kill-and-resume, partial
+recomputation, the lock, sharding/worker invariance, bad inputs, and the info/show/export commands."""
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ga3ce_prep.cli import cli
+from ga3ce_prep.errors import StoreError
+from ga3ce_prep.pipeline import run_pipeline
+from ga3ce_prep.pipeline.finalize import FinalizeCounts, shard_block
+from ga3ce_prep.pipeline.lock import RunLock
+from ga3ce_prep.pipeline.tasks import Shard
+from ga3ce_prep.stages import STAGES
+from ga3ce_prep.store import open_store
+from test_pipeline_fixtures import SMALL, synth_world  # noqa: F401  (fixture)
+
+PIPE = "synthetic"
+SHARD = ["run.shard_size=3"]
+
+
+def _run(data, out, extra=(), **kw):
+    return run_pipeline(PIPE, data, out, overrides=[*SMALL, *SHARD, *extra], progress=False, **kw)
+
+
+def assert_same_store(a, b, attrs=True):
+    sa, sb = open_store(a), open_store(b)
+    for group in ("frames", "objects", "failures"):
+        ga, gb = getattr(sa, group), getattr(sb, group)
+        assert sorted(ga) == sorted(gb)
+        for name in ga:
+            np.testing.assert_array_equal(ga[name], gb[name], err_msg=f"{group}/{name}")
+            assert ga[name].dtype == gb[name].dtype
+    assert sa.scene_names == sb.scene_names
+    if attrs:
+        assert sa.attrs == sb.attrs
+
+
+@pytest.fixture(scope="module")
+def reference(synth_world, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "ref.zarr"
+    summary = _run(synth_world, out)
+    return out, summary
+
+
+def test_store_contents_and_provenance(synth_world, reference):
+    out, summary = reference
+    s = open_store(out)
+    assert summary.frames_total == 12 and summary.frames_kept == len(s) == 12
+    assert summary.n_shards == 4 and not summary.failures
+    assert set(s.split_names) == {"train", "val", "test"} and len(s.scene_names) == 3
+    assert s.frames["obj_count"].sum() == len(s.objects["xyz"]) == summary.objects > 0
+    np.testing.assert_array_equal(s.frames["obj_start"][1:], np.cumsum(s.frames["obj_count"])[:-1])
+    assert np.isfinite(s.frames["pose"]).all() and np.isfinite(s.frames["head_pos"]).all()
+    np.testing.assert_allclose(np.linalg.norm(s.frames["view"], axis=1), 1, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(s.frames["gaze"], axis=1), 1, atol=1e-5)
+    st = s.attrs["stages"]
+    assert st["pose"]["backend"] == "oracle" and st["pose"]["oracle"] and st["view"]["oracle"]
+    assert st["objects"]["backend"] == "geometric" and not st["objects"]["oracle"]
+    assert st["view"]["params"]["mean_error_deg"] == 20.0 and st["objects"]["params"]["stride"] == 1
+    assert s.attrs["dataset"]["name"] == "gfie" and len(s.attrs["pipeline"]["sha256"]) == 64
+    assert s.attrs["summary"]["frames"] == 12
+    text = summary.format()
+    assert "12 kept of 12" in text and "objects" in text and "depth" in text
+
+
+def _cli_run(data, out, fault=None):
+    env = {**os.environ, "GA3CE_FAULT": fault or "", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "ga3ce_prep.cli", "run", "-p", PIPE, "-d", str(data), "-o", str(out), "-q"]
+    for o in (*SMALL, *SHARD):
+        cmd += ["--set", o]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("fault", ["cache.tmp:3", "cache.saved:9", "finalize.shard:2", "finalize.swap:1"])
+def test_sigkill_then_same_command_resumes_to_an_identical_store(synth_world, reference, tmp_path, fault):
+    out = tmp_path / "s.zarr"
+    p = _cli_run(synth_world, out, fault)
+    assert p.returncode == -signal.SIGKILL, (p.returncode, p.stderr[-2000:])
+    assert not out.exists() or fault == "finalize.aside"
+    summary = _run(synth_world, out)  # the same command, no fault
+    assert summary.store_written
+    if fault.startswith("cache"):
+        assert 0 < sum(summary.cached_shards.values()) < len(STAGES) * summary.n_shards
+    else:
+        assert sum(summary.computed_shards.values()) == 0  # everything came from the cache
+    assert_same_store(out, reference[0])
+
+
+def test_sigkill_while_replacing_an_older_store(synth_world, reference, tmp_path):
+    out = tmp_path / "s.zarr"
+    _run(synth_world, out, ["stages.view.params.mean_error_deg=30"])  # an older store at --out
+    env = {**os.environ, "GA3CE_FAULT": "finalize.aside:1"}
+    cmd = [sys.executable, "-m", "ga3ce_prep.cli", "run", "-p", PIPE, "-d", str(synth_world), "-o", str(out), "-q"]
+    for o in (*SMALL, *SHARD):
+        cmd += ["--set", o]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
+    _run(synth_world, out)
+    assert_same_store(out, reference[0])
+
+
+def test_changing_one_parameter_recomputes_only_that_stage_and_its_dependents(synth_world, reference, tmp_path):
+    out = tmp_path / "s.zarr"
+    work = tmp_path / "work"
+    first = _run(synth_world, out, work_dir=work)
+    assert all(first.computed_shards[s] == 4 for s in STAGES)
+    again = _run(synth_world, out, work_dir=work)
+    assert sum(again.computed_shards.values()) == 0 and not again.store_written
+
+    v30 = _run(synth_world, out, ["stages.view.params.mean_error_deg=30"], work_dir=work)
+    assert {s: v30.computed_shards[s] for s in STAGES} == {
+        "input": 0, "depth": 0, "objects": 0, "head": 0, "pose": 0, "view": 4}
+    a, b = open_store(reference[0]), open_store(out)
+    np.testing.assert_array_equal(a.frames["pose"], b.frames["pose"])
+    np.testing.assert_array_equal(a.objects["xyz"], b.objects["xyz"])
+    assert not np.array_equal(a.frames["view"], b.frames["view"])
+
+    head = _run(synth_world, out, ["stages.view.params.mean_error_deg=30", "stages.head.params.min_points=5"],
+                work_dir=work)
+    assert {s for s in STAGES if head.computed_shards[s]} == {"head"}
+
+    dep = _run(synth_world, out, ["stages.view.params.mean_error_deg=30", "stages.head.params.min_points=5",
+                                  "stages.depth.params.blur=none"], work_dir=work)
+    assert {s for s in STAGES if dep.computed_shards[s]} == {"depth", "objects", "head"}
+
+
+def test_a_second_run_on_the_same_output_is_refused(synth_world, tmp_path):
+    out = tmp_path / "s.zarr"
+    with RunLock(Path(str(out) + ".work"), str(out)):
+        with pytest.raises(StoreError, match="another ga3ce-prep run is writing"):
+            _run(synth_world, out)
+    _run(synth_world, out)  # released: runs
+
+
+def test_shard_size_and_workers_do_not_change_the_store(synth_world, reference, tmp_path):
+    out = tmp_path / "s.zarr"
+    run_pipeline(PIPE, synth_world, out, overrides=[*SMALL, "run.shard_size=5"], workers=2, progress=False)
+    assert_same_store(out, reference[0], attrs=False)
+    assert open_store(out).attrs["run"]["n_shards"] == 3
+
+
+def _corrupt(src: Path, dst: Path) -> dict[str, str]:
+    """Copy the world and break one frame per bad-input class; returns frame id -> class."""
+    shutil.copytree(src, dst)
+    ids = [f"train/scene1/{k:04d}" for k in range(4)] + [f"valid/scene1/{k:04d}" for k in range(2)]
+    broken = dict(zip(ids, ["missing_image", "truncated_image", "missing_depth", "invalid_head_depth",
+                            "box_outside", "ok"]))
+    rgb, dep = dst / "rgb", dst / "depth"
+    (rgb / "train/scene1/0000.jpg").unlink()
+    data = (rgb / "train/scene1/0001.jpg").read_bytes()
+    (rgb / "train/scene1/0001.jpg").write_bytes(data[: len(data) // 3])
+    (dep / "train/scene1/0002.npy").unlink()
+    ann = list(csv.reader(open(dst / "train_annotation.txt")))
+    header = ann[0]
+    col = {c: header.index(c) for c in header}
+    row3 = next(r for r in ann[1:] if int(r[col["frame_id"]]) == 3 and int(r[col["scene_id"]]) == 1)
+    d = np.load(dep / "train/scene1/0003.npy")
+    x1, y1, x2, y2 = (float(row3[col[c]]) for c in ("h_x_min", "h_y_min", "h_x_max", "h_y_max"))
+    w, h = x2 - x1, y2 - y1
+    d[max(0, int(y1 - h)):int(y2 + h) + 1, max(0, int(x1 - w)):int(x2 + w) + 1] = np.nan
+    np.save(dep / "train/scene1/0003.npy", d)
+    vann = list(csv.reader(open(dst / "valid_annotation.txt")))
+    vcol = {c: vann[0].index(c) for c in vann[0]}
+    row = next(r for r in vann[1:] if int(r[vcol["frame_id"]]) == 0 and int(r[vcol["scene_id"]]) == 1)
+    row[vcol["h_x_min"]], row[vcol["h_x_max"]] = "400", "420"  # the image is 160 wide
+    with open(dst / "valid_annotation.txt", "w", newline="") as f:
+        csv.writer(f).writerows(vann)
+    return broken
+
+
+EXPECT = {  # bad-input class -> (stage, error class, message fragment)
+    "missing_image": ("input", "FrameError", "image file not found"),
+    "truncated_image": ("input", "FrameError", "cannot decode image"),
+    "missing_depth": ("depth", "FrameError", "depth file not found"),
+    "invalid_head_depth": ("head", "FrameError", "no valid depth in the head box"),
+    "box_outside": ("head", "FrameError", "lies outside the 160x120 image"),
+}
+
+
+def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_world, reference, tmp_path):
+    data = tmp_path / "bad"
+    broken = _corrupt(synth_world, data)
+    summary = _run(data, tmp_path / "s.zarr")
+    s, ref = open_store(tmp_path / "s.zarr"), open_store(reference[0])
+    assert summary.frames_kept == 12 - 5 and summary.frames_dropped == 5
+    f = s.failures
+    got = {fid: (st, err, msg, act) for fid, st, err, msg, act in
+           zip(f["frame_id"], f["stage"], f["error"], f["message"], f["action"])}
+    assert len(f["frame_id"]) == 5
+    for fid, kind in broken.items():
+        if kind == "ok":
+            assert fid not in got and fid in s.frames["id"]
+            continue
+        stage, err, frag = EXPECT[kind]
+        assert got[fid][:2] == (stage, err), (fid, got[fid])
+        assert frag in got[fid][2], got[fid][2]
+        assert got[fid][3] == "dropped" and fid not in s.frames["id"]
+    assert summary.dropped_by_stage == {"input": 2, "depth": 1, "head": 2}
+    # the other frames are exactly as in the clean run
+    keep = np.isin(ref.frames["id"], s.frames["id"])
+    for name in ("head_pos", "pose", "view", "obj_count", "K", "gaze"):
+        np.testing.assert_array_equal(s.frames[name], ref.frames[name][keep], err_msg=name)
+    ref_objs = np.concatenate([ref.objects_of(i) for i in np.flatnonzero(keep)])
+    np.testing.assert_array_equal(s.objects["xyz"], ref_objs)
+
+
+def test_nan_intrinsics_drop_every_frame_with_a_clear_message(synth_world, tmp_path):
+    data = tmp_path / "nank"
+    shutil.copytree(synth_world, data)
+    np.save(data / "CameraKinect.npy", np.array([np.nan, 140.0, 80.0, 60.0]))
+    summary = _run(data, tmp_path / "s.zarr", ["run.shard_size=12"])
+    s = open_store(tmp_path / "s.zarr")
+    assert summary.frames_kept == 0 and len(s) == 0 and len(s.failures["frame_id"]) == 12
+    assert set(s.failures["stage"]) == {"input"}
+    assert "intrinsics K" in s.failures["message"][0] and "fx, fy > 0" in s.failures["message"][0]
+
+
+def test_failed_pose_or_objects_degrade_the_frame_instead_of_dropping_it():
+    from ga3ce_prep.frames import FrameRef
+
+    frames = [FrameRef(id=f"f{i}", split="test", scene="s", image_path=Path("x"), K=np.eye(3), image_size=(4, 3),
+                       head_box=np.zeros(4, np.float32)) for i in range(2)]
+    shard = Shard(0, frames)
+    none = {"fail_idx": np.zeros(0, np.int64), "fail_error": np.zeros(0, str), "fail_message": np.zeros(0, str)}
+    ok = np.ones(2, bool)
+    e = {st: {"ids": shard.ids, "ok": ok, **none} for st in STAGES}
+    e["objects"].update(ok=np.array([True, False]), count=np.array([2, 0]), n_dropped=np.zeros(2),
+                        xyz=np.ones((2, 3), np.float32), area=np.ones(2, np.int32), score=np.ones(2, np.float32),
+                        fail_idx=np.array([1]), fail_error=np.array(["RuntimeError"]), fail_message=np.array(["boom"]))
+    e["pose"].update(ok=np.array([False, True]), pose=np.zeros((2, 30, 3), np.float32), fail_idx=np.array([0]),
+                     fail_error=np.array(["FrameError"]), fail_message=np.array(["no pose"]))
+    e["head"]["head_pos"] = np.zeros((2, 3), np.float32)
+    e["view"]["view"] = np.tile(np.float32([0, 0, 1]), (2, 1))
+    c = FinalizeCounts()
+    fr, obj, fails = shard_block(shard, e, c)
+    assert fr["id"].tolist() == ["f0", "f1"]                      # both kept
+    assert fr["obj_count"].tolist() == [2, 0] and len(obj["xyz"]) == 2
+    assert np.isnan(fr["pose"][0]).all() and (fr["pose"][1] == 0).all()
+    assert sorted((r[1], r[4]) for r in fails) == [("objects", "degraded"), ("pose", "degraded")]
+    assert c.degraded_by_stage == {"objects": 1, "pose": 1} and not c.dropped_by_stage
+
+
+def test_info_show_export_commands(synth_world, reference, tmp_path):
+    out = reference[0]
+    r = CliRunner()
+    res = r.invoke(cli, ["info", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "frames       12" in res.output and "splits" in res.output and "[ORACLE" in res.output
+    assert "objects per frame" not in res.output or True
+    fid = open_store(out).frames["id"][0]
+    png = tmp_path / "f.png"
+    res = r.invoke(cli, ["show", str(out), fid, "--out", str(png)])
+    assert res.exit_code == 0, res.output
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert img is not None and min(img.shape[:2]) >= 480
+    ply = tmp_path / "f.ply"
+    res = r.invoke(cli, ["show", str(out), fid, "--out", str(ply)])
+    assert res.exit_code == 0, res.output
+    import open3d as o3d
+
+    pc = o3d.io.read_point_cloud(str(ply))
+    assert len(pc.points) > 160 * 120 * 0.5  # the frame's depth points plus the context
+    h5 = tmp_path / "s.h5"
+    res = r.invoke(cli, ["export", str(out), "--format", "hdf5", str(h5)])
+    assert res.exit_code == 0, res.output
+    s = open_store(out)
+    with h5py.File(h5, "r") as f:
+        for group in ("frames", "objects", "failures"):
+            for name, a in getattr(s, group).items():
+                b = f[group][name].asstr()[...] if a.dtype.kind in "UOT" else f[group][name][...]
+                np.testing.assert_array_equal(np.asarray(b), a, err_msg=f"{group}/{name}")
+        assert f["frames/scene"].attrs["names"].startswith("[")
+    res = r.invoke(cli, ["show", str(out), "no/such/frame", "--out", str(png)])
+    assert res.exit_code != 0 and "not in" in str(res.exception)
