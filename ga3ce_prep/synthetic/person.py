@@ -31,6 +31,13 @@ def _on_head(y: float, z: float, side: float = 1.0) -> np.ndarray:
     return HEAD_CENTRE + np.array([side * x, y, z])
 
 
+def _ear(side: float) -> np.ndarray:
+    """Ear point on the head ellipsoid's side (side=1 left, -1 right), slightly back and low."""
+    a, b, c = HEAD_AXES
+    x, z = -0.005, -0.005
+    return HEAD_CENTRE + np.array([x, side * b * np.sqrt(1 - (x / a) ** 2 - (z / c) ** 2), z])
+
+
 REST = np.array([
     (0.0, 0.0, 0.96), (0.0, 0.085, 0.90), (0.0, -0.085, 0.90), (-0.01, 0.0, 1.07),      # pelv lhip rhip bell
     (0.01, 0.09, 0.50), (0.01, -0.09, 0.50), (-0.01, 0.0, 1.20), (-0.02, 0.09, 0.08),   # lkne rkne spin lank
@@ -40,9 +47,9 @@ REST = np.array([
     (0.0, 0.21, 0.90), (0.0, -0.21, 0.90), (0.01, 0.21, 0.82), (0.01, -0.21, 0.82),     # lwri rwri lhan rhan
     tuple(HEAD_CENTRE + np.array([0.105, 0.0, -0.03])),                                 # 24 nose
     tuple(_on_head(0.032, 0.005)),                                                       # 25 leye
-    tuple(HEAD_CENTRE + np.array([-0.005, HEAD_AXES[1], -0.005])),                      # 26 lear
+    tuple(_ear(1.0)),                                                                    # 26 lear
     tuple(_on_head(-0.032, 0.005)),                                                      # 27 reye
-    tuple(HEAD_CENTRE + np.array([-0.005, -HEAD_AXES[1], -0.005])),                     # 28 rear
+    tuple(_ear(-1.0)),                                                                   # 28 rear
     tuple(HEAD_CENTRE + np.array([0.0, 0.0, HEAD_AXES[2]])),                            # 29 htop
 ])
 EYES = (25, 27)

@@ -264,10 +264,18 @@ class _Builder:
             s, c, spread = centres[ci]
             shape = str(rng.choice(list(cfg.shapes)))
             L = float(np.exp(rng.uniform(lo, hi)))
-            for attempt in range(30):
-                if attempt == 15:  # the cluster is full: try anywhere
-                    s = floor if not surfs or rng.random() < cfg.floor_fraction else surfs[int(rng.integers(len(surfs)))]
+            for attempt in range(60):
+                if attempt < 20 and attempt % 4 == 3:  # crowded: widen the cluster
+                    spread *= 1.3
+                if attempt >= 20 and attempt % 5 == 0:  # the cluster is full: try any surface it fits on
+                    r_min = 0.5 * L * (0.5 if shape in ("box", "ellipsoid", "cylinder", "cone") else 1.0)
+                    fit = [x for x in surfs + [floor] if min(x.x1 - x.x0, x.y1 - x.y0) >= 2 * r_min]
+                    if fit:
+                        a = np.array([x.area for x in fit])
+                        s = fit[int(rng.choice(len(fit), p=a / a.sum()))]
                     c, spread = np.array([0.5 * (s.x0 + s.x1), 0.5 * (s.y0 + s.y1)]), 10.0
+                if attempt == 45:  # nowhere: a smaller one
+                    L = max(cfg.size[0], 0.7 * L)
                 dims = _object_dims(shape, L, rng)
                 if dims[2] > s.headroom:
                     dims = dims * (s.headroom / dims[2])
@@ -285,7 +293,9 @@ class _Builder:
                 continue
             placed.append((s, p, r))
             R = meshes.rot_z(rng.uniform(0, 2 * np.pi))
-            mesh = meshes.transformed(shape, dims, R, (p[0], p[1], s.z + dims[2] / 2 if shape != "torus" else s.z + dims[0] / 8))
+            v, f = meshes.transformed(shape, dims, R, (p[0], p[1], 0.0))
+            v[:, 2] += np.float32(s.z) - v[:, 2].min()  # rest on the surface (tessellated bottoms too)
+            mesh = (v, f)
             dark = rng.random() < cfg.dark_fraction
             shiny = rng.random() < cfg.shiny_fraction
             col = _colour(rng, (0.0, 0.1), (0.01, 0.05)) if dark else _colour(rng)

@@ -75,7 +75,9 @@ class TargetSampler:
         d = cen - eye
         dist = np.linalg.norm(d, axis=1)
         yaw = np.abs([wrap(np.arctan2(y, x) - heading) for x, y in d[:, :2]])
-        ok = (dist >= cfg.object_distance[0]) & (dist <= cfg.object_distance[1]) & (yaw <= np.radians(cfg.max_target_yaw))
+        pitch = np.arcsin(np.clip(d[:, 2] / np.maximum(dist, 1e-9), -1, 1))
+        ok = ((dist >= cfg.object_distance[0]) & (dist <= cfg.object_distance[1])
+              & (yaw <= np.radians(cfg.max_target_yaw)) & (pitch > np.radians(-65)) & (pitch < np.radians(45)))
         cand = objs[ok]
         for inst in rng.permutation(cand)[:6]:
             samples = self.room.instances[int(inst)].samples

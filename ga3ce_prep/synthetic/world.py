@@ -190,46 +190,24 @@ class Scene:
                 root_xy = pos + cfg.person.sway * np.sin(0.7 * t * dt + sway)
             eye_est = np.array([root_xy[0], root_xy[1], self._head_point(root_xy)[2] - 0.03 * s]) \
                 + 0.08 * s * np.array([np.cos(heading), np.sin(heading), 0.0])
-            # fixation
+            # fixation: a new one when it is over or the target fell behind or too close; again
+            # when the head cannot turn far enough to keep the eye-in-head offset under its cap
             if fix is not None:
                 d = fix.target.point - eye_est
-                if t >= fix.end or abs(gz.wrap(np.arctan2(d[1], d[0]) - heading)) > np.radians(g.max_target_yaw + 30):
+                if (t >= fix.end or np.linalg.norm(d) < 0.35
+                        or abs(gz.wrap(np.arctan2(d[1], d[0]) - heading)) > np.radians(g.max_target_yaw)):
                     fix = None
-            if fix is None:
-                fix = self._new_fixation(t, eye_est, heading)
+            for attempt in range(4):
+                if fix is None:
+                    fix = self._new_fixation(t, eye_est, heading)
+                sol = self._solve(fix, root_xy, eye_est, heading, posture, phase, seat_h, prev_yaw, prev_head,
+                                  a_head, a_body)
+                joints, G, eye, gaze, head_dir, yaw_state = sol
+                if gz.angle(gaze, head_dir) <= np.radians(g.eye_offset_max + 0.5) or attempt == 3:
+                    break
+                fix = None
             target = fix.target.point
-            g_est = gz.unit(target - eye_est)
-            # body follows
-            dyaw = fix.body_follow * gz.wrap(gz.yaw_of(g_est) - heading)
-            if posture == "standing":
-                yaw, twist = heading + dyaw, 0.0
-                if prev_yaw is not None:
-                    yaw = prev_yaw + a_body * gz.wrap(yaw - prev_yaw)
-                prev_yaw = yaw
-            else:
-                lim = np.radians(g.max_torso_twist)
-                twist = float(np.clip(dyaw, -lim, lim))
-                if prev_yaw is not None:
-                    twist = prev_yaw + a_body * (twist - prev_yaw)
-                prev_yaw = twist
-                yaw = heading
-            pitch = np.arcsin(np.clip(g_est[2], -1, 1))
-            lean = float(np.clip(-0.25 * pitch, 0.0, np.radians(15))) if posture != "walking" else np.radians(3)
-            L, pelvis_z = posture_rotations(body, posture, phase, seat_h, lean, twist)
-            root = np.array([root_xy[0], root_xy[1], pelvis_z])
-            joints, G = forward_kinematics(body, root, yaw, L)
-            torso_fwd = G[9][:, 0]
-            for _ in range(3):  # the eye moves with the head: iterate to a fixed point
-                eye = joints[list(EYES)].mean(axis=0)
-                gaze = gz.unit(target - eye)
-                h = gz.head_direction(gaze, torso_fwd, fix.head_follow, np.radians(g.eye_offset_max), fix.jitter,
-                                      prev_head, a_head if prev_head is not None else 1.0)
-                set_head(body, L, G[9], head_frame(h))
-                joints, G = forward_kinematics(body, root, yaw, L)
-            eye = joints[list(EYES)].mean(axis=0)
-            gaze = gz.unit(target - eye)
-            head_dir = G[15][:, 0].copy()
-            prev_head = head_dir
+            prev_head, prev_yaw = head_dir, yaw_state
             reaching = fix.reach_side >= 0
             if reaching:
                 amount = min(1.0, (t - fix.start + 1) * dt / max(g.reach_ramp, 1e-6))
@@ -241,6 +219,42 @@ class Scene:
                      for v, cam in zip(self.views, self.cameras)]
             yield Step(t, joints, G, eye, fix.target, gaze, head_dir, hc, hR, hax, POSTURES.index(posture),
                        reaching, mesh, views)
+
+    def _solve(self, fix: Fixation, root_xy, eye_est, heading, posture, phase, seat_h, prev_yaw, prev_head,
+               a_head, a_body):
+        """Pose the person for one fixation: the torso follows the gaze's yaw, the head follows
+        its direction, the eyes do the rest. Returns joints, rotations, eye, gaze, head direction
+        and the smoothed torso yaw (standing) or twist (walking, sitting)."""
+        body, g = self.body, self.cfg.gaze
+        target = fix.target.point
+        g_est = gz.unit(target - eye_est)
+        dyaw = fix.body_follow * gz.wrap(gz.yaw_of(g_est) - heading)
+        if posture == "standing":
+            yaw, twist = heading + dyaw, 0.0
+            if prev_yaw is not None:
+                yaw = prev_yaw + a_body * gz.wrap(yaw - prev_yaw)
+            state = yaw
+        else:
+            lim = np.radians(g.max_torso_twist)
+            twist = float(np.clip(dyaw, -lim, lim))
+            if prev_yaw is not None:
+                twist = prev_yaw + a_body * (twist - prev_yaw)
+            state, yaw = twist, heading
+        pitch = np.arcsin(np.clip(g_est[2], -1, 1))
+        lean = float(np.clip(-0.25 * pitch, 0.0, np.radians(15))) if posture != "walking" else np.radians(3)
+        L, pelvis_z = posture_rotations(body, posture, phase, seat_h, lean, twist)
+        root = np.array([root_xy[0], root_xy[1], pelvis_z])
+        joints, G = forward_kinematics(body, root, yaw, L)
+        torso_fwd = G[9][:, 0]
+        for _ in range(3):  # the eye moves with the head: iterate to a fixed point
+            eye = joints[list(EYES)].mean(axis=0)
+            gaze = gz.unit(target - eye)
+            h = gz.head_direction(gaze, torso_fwd, fix.head_follow, np.radians(g.eye_offset_max), fix.jitter,
+                                  prev_head, a_head if prev_head is not None else 1.0)
+            set_head(body, L, G[9], head_frame(h))
+            joints, G = forward_kinematics(body, root, yaw, L)
+        eye = joints[list(EYES)].mean(axis=0)
+        return joints, G, eye, gz.unit(target - eye), G[15][:, 0].copy(), state
 
     def truth(self, step: Step, c: int, frame_id: str, split: str, scene: str, camera: str) -> TruthFrame:
         """Camera c's exact truth for one step (camera frame), keyed by the dataset's frame id."""

@@ -1,0 +1,46 @@
+"""Summary statistics of a generated world, from its truth side-car (printed by `synth`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import angular_error_deg
+from .truth import TruthReader
+
+
+def world_statistics(truth: TruthReader) -> dict[str, float]:
+    """Objects per frame (instances of kind object in the room, and those with visible pixels),
+    target mix, eye-in-head offset (= angle between gaze and head direction), head turn (head vs
+    chest direction), gaze vs chest angle, share of frames whose eye offset exceeds the head turn,
+    reaching share, target visibility; angles in degrees."""
+    kinds = truth.object_kinds
+    obj = kinds.index("object")
+    counts = truth.obj_count
+    okind, opix = truth._objects["kind"], truth._objects["pixels"]
+    is_obj = okind == obj
+    frame_of = np.repeat(np.arange(len(truth)), counts)
+    n_obj = np.bincount(frame_of[is_obj], minlength=len(truth))
+    n_vis = np.bincount(frame_of[is_obj & (opix > 0)], minlength=len(truth))
+    offset = angular_error_deg(truth.gaze, truth.head_dir)
+    turn = angular_error_deg(truth.head_dir, truth.chest_dir)
+    tk = truth.target_kind
+    out = {"frames": float(len(truth)), "objects_per_frame": float(n_obj.mean()),
+           "visible_objects_per_frame": float(n_vis.mean())}
+    for i, name in enumerate(truth.target_kinds):
+        out[f"target_{name}"] = float(np.mean(tk == i))
+    out.update({
+        "eye_in_head_offset_mean_deg": float(offset.mean()),
+        "eye_in_head_offset_max_deg": float(offset.max()),
+        "head_turn_mean_deg": float(turn.mean()),
+        "gaze_chest_mean_deg": float(angular_error_deg(truth.gaze, truth.chest_dir).mean()),
+        "offset_exceeds_head_turn": float(np.mean(offset > turn)),
+        "reaching": float(np.mean(truth.reaching)),
+        "object_target_visible": float(np.mean(truth.target_visible[tk == 0])) if np.any(tk == 0) else float("nan"),
+        "eye_distance_mean_m": float(np.linalg.norm(truth.eye, axis=1).mean()),
+        "head_box_height_mean_px": float(np.mean(truth.head_box[:, 3] - truth.head_box[:, 1])),
+    })
+    return out
+
+
+def format_statistics(s: dict[str, float]) -> str:
+    """One line per statistic."""
+    return "\n".join(f"  {k:30s} {v:8.3f}" for k, v in s.items())
