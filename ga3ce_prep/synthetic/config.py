@@ -70,7 +70,7 @@ class GazeConfig:
     dwell: tuple[float, float] = (0.4, 2.5)      # seconds per fixation
     object_distance: tuple[float, float] = (0.4, 4.5)  # eye-to-target distance of object targets (m)
     max_target_yaw: float = 110.0                # targets within this yaw of the person's heading (deg)
-    head_follow: tuple[float, float] = (0.25, 0.6)  # share of the torso-to-gaze angle the head turns
+    head_follow: tuple[float, float] = (0.15, 0.5)  # share of the torso-to-gaze angle the head turns
     eye_offset_max: float = 25.0                 # eye-in-head offset cap (deg): the head catches up beyond it
     head_jitter: float = 3.0                     # random head direction error, std per axis (deg)
     body_follow: tuple[float, float] = (0.1, 0.5)  # share of the heading-to-gaze yaw the torso turns

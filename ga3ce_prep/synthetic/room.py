@@ -238,7 +238,7 @@ class _Builder:
         self.footprints.append((cx - r, cx + r, cy - r, cy + r))
 
     # --- objects -----------------------------------------------------------------------------
-    def objects(self, sx: float, sy: float, occupied: np.ndarray) -> None:
+    def objects(self, sx: float, sy: float, occupied: np.ndarray, focus: Surface | None = None) -> None:
         cfg, rng = self.cfg.objects, self.rng
         n = int(rng.integers(cfg.count[0], cfg.count[1] + 1))
         if n == 0:
@@ -254,6 +254,8 @@ class _Builder:
             else:
                 a = np.array([x.area for x in surfs])
                 s = surfs[int(rng.choice(len(surfs), p=a / a.sum()))]
+            if focus is not None and not centres:  # the table a sitting person works at
+                s = focus
             c = np.array([rng.uniform(s.x0, s.x1), rng.uniform(s.y0, s.y1)])
             centres.append((s, c, rng.uniform(*cfg.cluster_spread)))
         weights = rng.dirichlet(np.ones(k)) if k > 1 else np.ones(1)
@@ -351,7 +353,7 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
     for _ in range(int(rng.integers(rc.cabinets[0], rc.cabinets[1] + 1))):
         b.cabinet(sx, sy)
     chair_col = _colour(rng, (0.1, 0.6), (0.2, 0.8))
-    seat = None
+    seat, focus = None, None
     if sitting:
         tables = [(s, i) for i, s in enumerate(b.surfaces) if s.headroom >= 1.0 and 0.6 < s.z < 0.8]
         for s, _ in tables:
@@ -366,6 +368,7 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
                     seat_h = float(rng.uniform(0.42, 0.48))
                     b.chair_at(x, y, yaw, seat_h, chair_col)
                     seat = Seat(np.array([x, y]), seat_h, float(yaw))
+                    focus = s
                     break
             if seat is not None:
                 break
@@ -375,7 +378,7 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
             (x0, x1, y0, y1), yaw = got
             b.chair_at(0.5 * (x0 + x1), 0.5 * (y0 + y1), yaw, float(rng.uniform(0.42, 0.48)), chair_col)
     occ = _occupancy(sx, sy, b.footprints)
-    b.objects(sx, sy, occ)
+    b.objects(sx, sy, occ, focus)
     # the person's free space: off furniture and floor objects, 0.3 m from walls and furniture
     for inst in b.instances:
         if inst.kind == "object" and inst.vertices[:, 2].min() < 0.01:

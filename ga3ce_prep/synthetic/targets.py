@@ -28,25 +28,31 @@ class Target:
 class TargetSampler:
     """Draws targets for one scene, checked against the primary camera's static view."""
 
-    def __init__(self, room: Room, static: StaticScene, cam: Camera, view: View, cfg: GazeConfig,
+    def __init__(self, room: Room, static: StaticScene, cams: list[Camera], views: list[View], cfg: GazeConfig,
                  in_front: bool):
-        self.room, self.static, self.cam, self.view, self.cfg = room, static, cam, view, cfg
+        """cams/views: the scene's cameras and static renders; the first one is primary (space
+        targets must be in its view, out-of-view targets outside it); object targets must be seen
+        by at least one camera."""
+        self.room, self.static, self.cams, self.views, self.cfg = room, static, cams, views, cfg
+        self.cam = cams[0]
         self.in_front = in_front  # out-of-view targets must still lie in front of the camera (2D annotation)
-        inst = view.instance[view.instance >= 0].astype(np.int64)
-        self.pixels = np.bincount(inst, minlength=len(room.instances))
-        self.min_pixels = max(8, int(30 * cam.width * cam.height / (640 * 480)))
+        n = len(room.instances)
+        self.pixels = sum(np.bincount(v.instance[v.instance >= 0].astype(np.int64), minlength=n)[:n] for v in views)
+        self.min_pixels = max(2, int(round(30 * self.cam.width * self.cam.height / (640 * 480))))
         self.objects = np.array([i.id for i in room.instances if i.kind == "object"], np.int64)
         kinds = list(TARGET_KINDS)
         self.mix = np.array([cfg.target_mix.get(k, 0.0) for k in kinds])
         self.mix = self.mix / self.mix.sum()
 
-    def sample(self, rng: np.random.Generator, eye: np.ndarray, heading: float) -> Target:
-        """A target for a person whose eye is near `eye` (3,) facing `heading` (rad)."""
+    def sample(self, rng: np.random.Generator, eye: np.ndarray, heading: float, turn: bool = False) -> Target:
+        """A target for a person whose eye is near `eye` (3,) facing `heading` (rad); with `turn`
+        (a standing person, who can turn round) objects in any direction qualify."""
         kind = int(rng.choice(3, p=self.mix))
         order = {OBJECT: (OBJECT, SPACE, OUT_OF_VIEW), SPACE: (SPACE, OBJECT, OUT_OF_VIEW),
                  OUT_OF_VIEW: (OUT_OF_VIEW, SPACE, OBJECT)}[kind]
         for k in order:
-            t = (self._object, self._space, self._out_of_view)[k](rng, eye, heading)
+            t = self._object(rng, eye, heading, turn) if k == OBJECT else \
+                (self._space, self._out_of_view)[k - 1](rng, eye, heading)
             if t is not None:
                 return t
         # nothing fits (e.g. facing a wall at close range): look at the space ahead
@@ -54,19 +60,21 @@ class TargetSampler:
         return Target(SPACE, -1, eye + 0.8 * unit(d))
 
     def _camera_sees(self, pts: np.ndarray, inst: int) -> np.ndarray:
-        pc = self.cam.to_cam(pts)
-        uv = self.cam.project(pts)
-        ok = np.isfinite(uv).all(axis=1)
-        u = np.round(np.nan_to_num(uv[:, 0], nan=-1)).astype(int)
-        v = np.round(np.nan_to_num(uv[:, 1], nan=-1)).astype(int)
-        ok &= (u >= 0) & (v >= 0) & (u < self.cam.width) & (v < self.cam.height)
+        """(N,) bool: the surface points are visible (unoccluded) in at least one camera."""
         out = np.zeros(len(pts), bool)
-        i = np.flatnonzero(ok)
-        z = self.view.depth[v[i], u[i]]
-        out[i] = (self.view.instance[v[i], u[i]] == inst) & (np.abs(z - pc[i, 2]) < 0.01 + 0.01 * pc[i, 2])
+        for cam, view in zip(self.cams, self.views):
+            pc = cam.to_cam(pts)
+            uv = cam.project(pts)
+            ok = np.isfinite(uv).all(axis=1)
+            u = np.round(np.nan_to_num(uv[:, 0], nan=-1)).astype(int)
+            v = np.round(np.nan_to_num(uv[:, 1], nan=-1)).astype(int)
+            ok &= (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+            i = np.flatnonzero(ok)
+            z = view.depth[v[i], u[i]]
+            out[i] |= (view.instance[v[i], u[i]] == inst) & (np.abs(z - pc[i, 2]) < 0.01 + 0.01 * pc[i, 2])
         return out
 
-    def _object(self, rng, eye, heading) -> Target | None:
+    def _object(self, rng, eye, heading, turn=False) -> Target | None:
         cfg = self.cfg
         objs = self.objects[self.pixels[self.objects] >= self.min_pixels] if len(self.objects) else self.objects
         if not len(objs):
@@ -77,11 +85,11 @@ class TargetSampler:
         yaw = np.abs([wrap(np.arctan2(y, x) - heading) for x, y in d[:, :2]])
         pitch = np.arcsin(np.clip(d[:, 2] / np.maximum(dist, 1e-9), -1, 1))
         ok = ((dist >= cfg.object_distance[0]) & (dist <= cfg.object_distance[1])
-              & (yaw <= np.radians(cfg.max_target_yaw)) & (pitch > np.radians(-65)) & (pitch < np.radians(45)))
+              & ((yaw <= np.radians(cfg.max_target_yaw)) | turn) & (pitch > np.radians(-65)) & (pitch < np.radians(45)))
         cand = objs[ok]
-        for inst in rng.permutation(cand)[:6]:
+        for inst in rng.permutation(cand)[:12]:
             samples = self.room.instances[int(inst)].samples
-            pts = samples[rng.choice(len(samples), size=min(12, len(samples)), replace=False)].astype(np.float64)
+            pts = samples[rng.choice(len(samples), size=min(16, len(samples)), replace=False)].astype(np.float64)
             good = self._camera_sees(pts, int(inst))
             if not good.any():
                 continue
@@ -91,34 +99,37 @@ class TargetSampler:
                 return Target(OBJECT, int(inst), pts[int(np.flatnonzero(seen)[0])])
         return None
 
+    def _directions(self, rng, heading, yaw_lim, pitch_range, n) -> np.ndarray:
+        yaw = heading + np.radians(rng.uniform(-yaw_lim, yaw_lim, n))
+        pitch = np.radians(rng.uniform(*pitch_range, n))
+        return np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=1)
+
+    def _cast(self, eye, d) -> dict[str, np.ndarray]:
+        rays = np.concatenate([np.broadcast_to(eye, d.shape), d], axis=1).astype(np.float32)
+        return self.static.cast(rays)
+
     def _space(self, rng, eye, heading) -> Target | None:
-        for _ in range(12):
-            yaw = heading + np.radians(rng.uniform(-60, 60))
-            pitch = np.radians(rng.uniform(-35, 10))
-            d = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
-            t = float(self.static.cast(np.concatenate([eye, d])[None].astype(np.float32))["t"][0])
-            dist = min(rng.uniform(0.8, 3.0), 0.85 * t)
-            if dist < 0.4:
-                continue
-            p = eye + dist * d
-            if self.cam.in_image(p, 0.02 * self.cam.width):
-                return Target(SPACE, -1, p)
-        return None
+        """A point in mid-air in the primary view, short of the first surface along its ray."""
+        d = self._directions(rng, heading, 60.0, (-35.0, 10.0), 24)
+        t = self._cast(eye, d)["t"]
+        dist = np.minimum(rng.uniform(0.8, 3.0, len(d)), 0.85 * t)
+        p = eye + dist[:, None] * d
+        ok = (dist >= 0.4) & self.cam.in_image(p, 0.02 * self.cam.width)
+        if not ok.any():
+            return None
+        return Target(SPACE, -1, p[int(np.flatnonzero(ok)[0])])
 
     def _out_of_view(self, rng, eye, heading) -> Target | None:
-        lim = self.cfg.max_target_yaw
-        for _ in range(16):
-            yaw = heading + np.radians(rng.uniform(-lim, lim))
-            pitch = np.radians(rng.uniform(-40, 20))
-            d = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
-            hit = self.static.cast(np.concatenate([eye, d])[None].astype(np.float32))
-            t, inst = float(hit["t"][0]), int(hit["instance"][0])
-            if not np.isfinite(t) or t < 0.4:
-                continue
-            p = eye + t * d
-            if self.cam.in_image(p):
-                continue
-            if self.in_front and self.cam.to_cam(p)[2] < 0.1:
-                continue
-            return Target(OUT_OF_VIEW, inst, p)
-        return None
+        """A surface point the person can see that the primary camera does not."""
+        d = self._directions(rng, heading, 0.7 * self.cfg.max_target_yaw, (-35.0, 20.0), 48)
+        hit = self._cast(eye, d)
+        t = hit["t"]
+        ok = np.isfinite(t) & (t >= 0.4)
+        p = eye + np.where(ok, t, 1.0)[:, None] * d
+        ok &= ~self.cam.in_image(p)
+        if self.in_front:
+            ok &= self.cam.to_cam(p)[:, 2] >= 0.1
+        if not ok.any():
+            return None
+        i = int(np.flatnonzero(ok)[0])
+        return Target(OUT_OF_VIEW, int(hit["instance"][i]), p[i])

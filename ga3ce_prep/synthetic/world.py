@@ -14,7 +14,7 @@ import numpy as np
 
 from .. import skeleton
 from . import gaze as gz
-from ..geometry import project
+from ..geometry import project, scale_intrinsics
 from .camera import Camera, ellipsoid_bbox, sample_camera
 from .config import POSTURES, SynthConfig
 from .noise import NoiseBank
@@ -84,8 +84,7 @@ class Scene:
         self.room: Room = room
         self.views = [render_static(self.static, cam, cfg.render) for cam in self.cameras]
         self.banks = [NoiseBank(rng, height, width) for _ in self.cameras]
-        self.sampler = TargetSampler(room, self.static, self.cameras[0], self.views[0], cfg.gaze,
-                                     in_front=fmt != "gafa")
+        self.sampler = TargetSampler(room, self.static, self.cameras, self.views, cfg.gaze, in_front=fmt != "gafa")
         self.walkable = self._walkable() if self.posture == "walking" else None
         if self.walkable is not None and self.walkable.sum() < 20:
             self.posture, self.walkable = "standing", None
@@ -122,16 +121,42 @@ class Scene:
             az0 = heading + rng.uniform(-1.2, 1.2)  # cameras tend to see the face side
             cams = []
             for c in range(n):
-                cam = sample_camera(rng, cfg.camera, self.K, self.width, self.height, room.size, home, 0.75 * head[2],
-                                    must[:1], lambda C, P: bool(self.static.clear_path(C, P).all()),
-                                    azimuth=az0 + 2 * np.pi * c / n)
-                if cam is None:
+                # of a few valid mounts, keep the one that sees the most objects (as a camera set up
+                # to record someone handling things would)
+                best, best_score = None, -1
+                for _ in range(3):
+                    cam = sample_camera(rng, cfg.camera, self.K, self.width, self.height, room.size, home,
+                                        0.75 * head[2], must[:1], lambda C, P: bool(self.static.clear_path(C, P).all()),
+                                        azimuth=az0 + 2 * np.pi * c / n)
+                    if cam is None:
+                        break
+                    score = self._objects_seen(cam, head, heading)
+                    if score > best_score:
+                        best, best_score = cam, score
+                if best is None:
                     break
-                cams.append(cam)
+                cams.append(best)
             if len(cams) == n:
                 self.home, self.heading0, self.cameras = home, heading, cams
                 return True
         return False
+
+    def _objects_seen(self, cam: Camera, head: np.ndarray, heading: float) -> int:
+        """How many objects a camera sees (at least ~30 px at 640x480, from a quarter-size render)
+        that the person at `head` facing `heading` could look at (gaze.max_target_yaw,
+        gaze.object_distance)."""
+        small = Camera(K=scale_intrinsics(cam.K, 0.25, 0.25), width=max(8, cam.width // 4),
+                       height=max(6, cam.height // 4), R=cam.R, C=cam.C)
+        inst = self.static.cast(small.rays().reshape(-1, 6))["instance"]
+        n = len(self.room.instances)
+        px = np.bincount(inst[inst >= 0].astype(np.int64), minlength=n)[:n]
+        g = self.cfg.gaze
+        d = np.stack([i.centroid for i in self.room.instances]) - head
+        dist = np.linalg.norm(d, axis=1)
+        yaw = np.abs((np.arctan2(d[:, 1], d[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
+        usable = np.array([i.kind == "object" for i in self.room.instances]) \
+            & (yaw <= np.radians(g.max_target_yaw)) & (dist >= g.object_distance[0]) & (dist <= g.object_distance[1])
+        return int(np.count_nonzero(usable & (px * 16 * (640 * 480) / (cam.width * cam.height) >= 30)))
 
     def _walkable(self) -> np.ndarray:
         """Free floor cells where a walking person's head and feet stay in the primary view."""
@@ -149,9 +174,9 @@ class Scene:
         return out
 
     # --- timeline ----------------------------------------------------------------------------
-    def _new_fixation(self, t: int, eye: np.ndarray, heading: float) -> Fixation:
+    def _new_fixation(self, t: int, eye: np.ndarray, heading: float, turn: bool) -> Fixation:
         rng, g = self.rng, self.cfg.gaze
-        target = self.sampler.sample(rng, eye, heading)
+        target = self.sampler.sample(rng, eye, heading, turn)
         dwell = max(1, int(round(rng.uniform(*g.dwell) / self.cfg.person.frame_dt)))
         reach = -1
         if target.kind == OBJECT and rng.random() < g.reach_prob:
@@ -199,7 +224,11 @@ class Scene:
                     fix = None
             for attempt in range(4):
                 if fix is None:
-                    fix = self._new_fixation(t, eye_est, heading)
+                    fix = self._new_fixation(t, eye_est, heading, turn=posture == "standing")
+                    d = fix.target.point - eye_est
+                    off = gz.wrap(np.arctan2(d[1], d[0]) - heading)
+                    if posture == "standing" and abs(off) > np.radians(60):  # turn round to it
+                        heading = gz.wrap(heading + off - np.sign(off) * np.radians(rng.uniform(0, 40)))
                 sol = self._solve(fix, root_xy, eye_est, heading, posture, phase, seat_h, prev_yaw, prev_head,
                                   a_head, a_body)
                 joints, G, eye, gaze, head_dir, yaw_state = sol

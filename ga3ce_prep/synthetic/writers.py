@@ -199,13 +199,18 @@ def body25_keypoints(tr: TruthFrame, cfg: KeypointConfig, rng: np.random.Generat
     miss = rng.random(25) < cfg.miss_prob
     ok = (z > 0.05) & np.isfinite(u) & np.isfinite(v)
     u, v = u + noise[:, 0], v + noise[:, 1]
-    ok &= (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1) & ~miss
+    ok &= (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     to_cam = -tr.head_center / np.linalg.norm(tr.head_center)
     facing = tr.head_dir @ to_cam          # > 0: the face is toward the camera
     left = tr.head_R[:, 1] @ to_cam        # > 0: the left side is toward the camera
     face = {0: facing > -0.15, 15: facing > -0.15, 16: facing > -0.15, 17: left < 0.3, 18: left > -0.3}
     for j, seen in face.items():
         ok[j] &= bool(seen)
+    # random misses, but a head in view keeps at least one face point (OpenPose finds an ear)
+    face_ok = ok[list(face)].copy()
+    ok &= ~miss
+    if face_ok.any() and not ok[list(face)].any():
+        ok[list(face)[int(np.flatnonzero(face_ok)[0])]] = True
     out = np.zeros((25, 3), np.float32)
     out[ok] = np.stack([u[ok], v[ok], conf[ok]], axis=1)
     return out
