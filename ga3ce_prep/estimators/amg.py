@@ -1,0 +1,202 @@
+"""The automatic mask generator's ("segment everything") grid, crops and filters, on numpy and OpenCV.
+
+The same algorithm as segment-anything's `SamAutomaticMaskGenerator` and `utils/amg.py` (identical in
+MobileSAM): per crop, a grid of single-point prompts; keep the multimask outputs whose predicted IoU
+exceeds `pred_iou_thresh`, whose stability score (IoU of the mask thresholded at +offset and at
+-offset) reaches `stability_score_thresh`, and whose box is not cut by an inner crop edge; greedy box
+NMS within the crop, then across crops; optionally remove small holes and islands. Boxes are XYXY in
+pixels with inclusive maxima (x2 = last column of the mask), as the reference computes them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import ConfigError
+
+
+@dataclass(frozen=True)
+class AmgOptions:
+    """segment-anything's generator options, with its defaults (the MobileSAM app uses them all)."""
+
+    points_per_side: int = 32
+    points_per_batch: int = 64
+    pred_iou_thresh: float = 0.88
+    stability_score_thresh: float = 0.95
+    stability_score_offset: float = 1.0
+    box_nms_thresh: float = 0.7
+    crop_n_layers: int = 0
+    crop_nms_thresh: float = 0.7
+    crop_overlap_ratio: float = 512 / 1500
+    crop_n_points_downscale_factor: int = 1
+    min_mask_region_area: int = 0
+
+    def __post_init__(self):
+        if self.points_per_side < 1 or self.points_per_batch < 1:
+            raise ConfigError("points_per_side and points_per_batch must be >= 1")
+        if self.crop_n_layers < 0 or self.crop_n_points_downscale_factor < 1:
+            raise ConfigError("crop_n_layers must be >= 0 and crop_n_points_downscale_factor >= 1")
+        for name in ("box_nms_thresh", "crop_nms_thresh"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        if self.min_mask_region_area < 0:
+            raise ConfigError("min_mask_region_area must be >= 0")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def build_point_grid(n_per_side: int) -> np.ndarray:
+    """(n*n, 2) cell centres of an n x n grid over [0, 1]^2 as (x, y), x varying fastest."""
+    offset = 1.0 / (2 * n_per_side)
+    side = np.linspace(offset, 1 - offset, n_per_side)
+    xs = np.tile(side[None, :], (n_per_side, 1))
+    ys = np.tile(side[:, None], (1, n_per_side))
+    return np.stack([xs, ys], axis=-1).reshape(-1, 2)
+
+
+def crop_boxes(im_size: tuple[int, int], n_layers: int, overlap_ratio: float) -> tuple[list[list[int]], list[int]]:
+    """Crop boxes XYXY (pixels) and their layer: layer 0 is the whole image, layer i has (2^i)^2
+    overlapping crops, listed x0-major as the reference does (the order decides NMS ties).
+    im_size = (H, W)."""
+    im_h, im_w = im_size
+    short = min(im_h, im_w)
+    boxes, layers = [[0, 0, im_w, im_h]], [0]
+    for i in range(n_layers):
+        n = 2 ** (i + 1)
+        overlap = int(overlap_ratio * short * (2 / n))
+        w = int(math.ceil((overlap * (n - 1) + im_w) / n))
+        h = int(math.ceil((overlap * (n - 1) + im_h) / n))
+        for x0 in (int((w - overlap) * k) for k in range(n)):
+            for y0 in (int((h - overlap) * k) for k in range(n)):
+                boxes.append([x0, y0, min(x0 + w, im_w), min(y0 + h, im_h)])
+                layers.append(i + 1)
+    return boxes, layers
+
+
+def layer_point_grids(n_per_side: int, n_layers: int, downscale: int) -> list[np.ndarray]:
+    """The point grid of each crop layer: layer i has int(n / downscale**i) points per side."""
+    return [build_point_grid(int(n_per_side / downscale ** i)) for i in range(n_layers + 1)]
+
+
+def stability_score(logits: np.ndarray, offset: float, threshold: float = 0.0) -> np.ndarray:
+    """IoU of the masks logits > threshold + offset and logits > threshold - offset, per mask.
+
+    logits (n, H, W) float. An empty union gives NaN (which fails any threshold, as in the reference).
+    """
+    n = logits.shape[0]
+    flat = logits.reshape(n, -1)
+    inter = np.count_nonzero(flat > threshold + offset, axis=1)
+    union = np.count_nonzero(flat > threshold - offset, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # float32, as the reference divides
+        return inter.astype(np.float32) / union.astype(np.float32)
+
+
+def masks_to_boxes(masks: np.ndarray) -> np.ndarray:
+    """(n, H, W) bool -> (n, 4) int64 XYXY with inclusive maxima; an empty mask gives [0, 0, 0, 0]."""
+    n = masks.shape[0]
+    if n == 0:
+        return np.zeros((0, 4), np.int64)
+    cols = masks.any(axis=1)          # (n, W)
+    rows = masks.any(axis=2)          # (n, H)
+    W, H = cols.shape[1], rows.shape[1]
+    has = cols.any(axis=1)
+    x1 = np.argmax(cols, axis=1)
+    x2 = W - 1 - np.argmax(cols[:, ::-1], axis=1)
+    y1 = np.argmax(rows, axis=1)
+    y2 = H - 1 - np.argmax(rows[:, ::-1], axis=1)
+    boxes = np.stack([x1, y1, x2, y2], axis=1).astype(np.int64)
+    boxes[~has] = 0
+    return boxes
+
+
+def box_area(boxes: np.ndarray) -> np.ndarray:
+    return (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+
+
+def box_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Greedy NMS as torchvision.ops.nms: visit boxes by decreasing score (ties in input order), drop
+    every later box whose IoU with a kept one exceeds `iou_threshold`. IoU uses (x2-x1)*(y2-y1) areas.
+    Returns the kept indices in visiting order."""
+    if len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    b = boxes.astype(np.float64)
+    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
+    area = box_area(b)
+    suppressed = np.zeros(len(b), bool)
+    keep = []
+    for pos, i in enumerate(order):
+        if suppressed[i]:
+            continue
+        keep.append(i)
+        rest = order[pos + 1:]
+        rest = rest[~suppressed[rest]]
+        if rest.size == 0:
+            break
+        iw = np.clip(np.minimum(b[i, 2], b[rest, 2]) - np.maximum(b[i, 0], b[rest, 0]), 0, None)
+        ih = np.clip(np.minimum(b[i, 3], b[rest, 3]) - np.maximum(b[i, 1], b[rest, 1]), 0, None)
+        inter = iw * ih
+        with np.errstate(invalid="ignore", divide="ignore"):
+            iou = inter / (area[i] + area[rest] - inter)
+        suppressed[rest[iou > iou_threshold]] = True
+    return np.asarray(keep, np.int64)
+
+
+def near_crop_edge(boxes: np.ndarray, crop_box: list[int], orig_box: list[int], atol: float = 20.0) -> np.ndarray:
+    """Boxes (n, 4) in crop coordinates within `atol` px of a crop edge that is not an image edge."""
+    crop = np.asarray(crop_box, np.float64)
+    orig = np.asarray(orig_box, np.float64)
+    b = boxes.astype(np.float64) + np.array([crop[0], crop[1], crop[0], crop[1]])
+    near_crop = np.isclose(b, crop[None, :], atol=atol, rtol=0)
+    near_image = np.isclose(b, orig[None, :], atol=atol, rtol=0)
+    return np.any(near_crop & ~near_image, axis=1)
+
+
+def remove_small_regions(mask: np.ndarray, area_thresh: float, mode: str) -> tuple[np.ndarray, bool]:
+    """Fill holes ("holes") or drop islands ("islands") smaller than area_thresh (8-connectivity).
+    Returns the new mask and whether it changed."""
+    if mode not in ("holes", "islands"):
+        raise ValueError(f"mode must be 'holes' or 'islands', got {mode!r}")
+    correct_holes = mode == "holes"
+    working = (correct_holes ^ mask).astype(np.uint8)
+    _, regions, stats, _ = cv2.connectedComponentsWithStats(working, connectivity=8)
+    sizes = stats[1:, cv2.CC_STAT_AREA]                    # label 0 is the background
+    small = sizes < area_thresh
+    if not small.any():
+        return mask, False
+    if correct_holes:   # the new mask: background label 0 plus the small components of the inverse
+        keep_label = np.concatenate([[True], small])
+    else:               # the large islands; the largest one if all are small
+        keep_label = np.concatenate([[False], ~small])
+        if not keep_label.any():
+            keep_label[int(np.argmax(sizes)) + 1] = True
+    return keep_label[regions], True
+
+
+# ---------------------------------------------------------------------------------------------
+# Low-resolution logits -> original resolution, as the decoder's postprocessing does it
+# ---------------------------------------------------------------------------------------------
+def preprocess_shape(h: int, w: int, long_side: int = 1024) -> tuple[int, int]:
+    """(newh, neww) of ResizeLongestSide: scale the longest side to `long_side`, round half up."""
+    scale = long_side / max(h, w)
+    return int(h * scale + 0.5), int(w * scale + 0.5)
+
+
+def upscale_logits(low_res: np.ndarray, orig_hw: tuple[int, int], out_hw: tuple[int, int] | None = None,
+                   img_size: int = 1024) -> np.ndarray:
+    """The decoder's mask postprocessing on (n, 256, 256) logits: bilinear (half-pixel, no
+    antialiasing) to img_size x img_size, crop to the resized image (newh, neww) of `orig_hw`, bilinear
+    to `out_hw` (default orig_hw). Returns (n, out_h, out_w) float32 logits.
+
+    With out_hw smaller than orig_hw this is the decoder's `orig_im_size` trick: the masks come
+    directly at the depth map's resolution."""
+    newh, neww = preprocess_shape(*orig_hw, img_size)
+    out_h, out_w = out_hw or orig_hw
+    out = np.empty((low_res.shape[0], out_h, out_w), np.float32)
+    for i, m in enumerate(low_res):
+        up = cv2.resize(np.ascontiguousarray(m, np.float32), (img_size, img_size), interpolation=cv2.INTER_LINEAR)
+        out[i] = cv2.resize(up[:newh, :neww], (out_w, out_h), interpolation=cv2.INTER_LINEAR)
+    return out
