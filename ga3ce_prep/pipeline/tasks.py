@@ -80,6 +80,13 @@ def backend(env: TaskEnv, stage: str):
     return b
 
 
+def warm(env: TaskEnv) -> None:
+    """Build every backend of the run in this process and let it import what it needs."""
+    _single_threaded()
+    for stage in env.stages:
+        backend(env, stage).warm()
+
+
 class _Failures:
     def __init__(self) -> None:
         self.idx: list[int] = []

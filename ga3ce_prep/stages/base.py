@@ -87,6 +87,10 @@ class Backend:
         """Validate once before any work (files readable, keys present); raise ConfigError or
         ModelFileError naming the pipeline key and the fix. Default: nothing to check."""
 
+    def warm(self) -> None:
+        """Import heavy libraries / load models ahead of the first frame (dask workers call it once
+        before the graph runs). Default: nothing."""
+
 
 class CheckInputBackend(Backend):
     stage = "input"

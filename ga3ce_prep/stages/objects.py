@@ -64,6 +64,9 @@ class GeometricObjects(MaskObjects):
 
     name = "geometric"
 
+    def warm(self) -> None:
+        import open3d  # noqa: F401  (about 1.5 s the first time in a process)
+
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, None]:
         p = GeometricParams(**{k: v for k, v in self.params.items() if k in GeometricParams.__dataclass_fields__})
         seed = int(frame_rng(self.params["seed"], "objects/geometric", frame.id).integers(0, 2**31 - 1))

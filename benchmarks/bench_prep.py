@@ -1,0 +1,251 @@
+"""Preprocessing throughput, scaling and memory on the synthetic world at 640x480 (`make bench-prep`).
+
+Side by side, in one run:
+  1. geometry stages per core: load depth + IP-Basic completion, object medians from masks (the
+     truth instance masks, so segmentation is not timed), head position; one thread, frames/s
+     (target: at least 100);
+  2. the geometric segmenter (Open3D DBSCAN + numpy RANSAC) per core, frames/s, and its accuracy:
+     how many true objects (the truth masks' medians, i.e. the synthetic-oracle store) get a
+     stored position within 10 cm;
+  3. the whole `synthetic` pipeline on 1 vs 2 dask workers (distributed.LocalCluster, one thread
+     each), frames/s from the workers being ready (target: 2 workers at least 1.8x one);
+  4. peak resident memory of a run (local scheduler, one process) over 1x and 4x the frames (it
+     must not grow with the dataset).
+The world is generated once into out/bench/world (reused while its settings match). Takes
+/tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly, not
+under `flock`. Figures are provisional on a busy machine.
+
+    python benchmarks/bench_prep.py [--frames 64 --json out/bench/bench_prep.json]
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread everywhere
+
+import click  # noqa: E402
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+WIDTH = 640
+FRAMES_PER_SCENE = 4
+
+
+@contextmanager
+def cpu_lock():
+    with open("/tmp/ga3ce-cpu.lock", "w") as f:
+        t = time.perf_counter()
+        fcntl.flock(f, fcntl.LOCK_EX)
+        waited = time.perf_counter() - t
+        if waited > 1:
+            print(f"(waited {waited:.0f} s for /tmp/ga3ce-cpu.lock)", flush=True)
+        yield
+
+
+def world(base: Path, n_frames: int) -> Path:
+    """A GFIE-format synthetic world of n_frames (4 per scene) at 640x480, generated once."""
+    from ga3ce_prep.synthetic.generate import generate
+
+    root = base / "world"
+    stamp = root / ".bench"
+    want = f"{n_frames} {WIDTH} {FRAMES_PER_SCENE} seed 11"
+    if stamp.is_file() and stamp.read_text() == want:
+        return root
+    shutil.rmtree(root, ignore_errors=True)
+    t = time.perf_counter()
+    generate("gfie", root, scenes=-(-n_frames // FRAMES_PER_SCENE), frames_per_scene=FRAMES_PER_SCENE, seed=11,
+             width=WIDTH, progress=True)
+    stamp.write_text(want)
+    print(f"generated {n_frames} frames in {time.perf_counter() - t:.0f} s", flush=True)
+    return root
+
+
+def geometry_per_core(data: Path, n: int) -> dict:
+    """Depth load + completion, object medians from truth masks, head: ms per frame, one thread."""
+    import cv2
+
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.frames import load_depth
+    from ga3ce_prep.geometry import head_position, object_positions
+    from ga3ce_prep.stages.depth import complete_depth
+    from ga3ce_prep.synthetic.truth import TruthReader
+
+    cv2.setNumThreads(1)
+    frames = list(open_dataset("gfie", data).frames())[:n]
+    truth = TruthReader(data / "truth.h5")
+    kinds = truth.object_kinds
+    masks = []
+    for f in frames:  # label images of object + furniture instances (not timed)
+        rec = truth.get(f.id)
+        keep = rec.objects.instance[np.isin(np.array(kinds)[rec.objects.kind], ["object", "furniture"])]
+        masks.append(np.where(np.isin(rec.instance, keep), rec.instance, -1).astype(np.int16))
+    t = {"load": 0.0, "complete": 0.0, "medians": 0.0, "head": 0.0}
+    n_obj = 0
+    for rep in range(2):  # the first pass warms caches; the second is timed
+        for f, m in zip(frames, masks):
+            t0 = time.perf_counter()
+            raw = load_depth(f.depth_path, f.depth_scale)
+            t1 = time.perf_counter()
+            dm = complete_depth(raw)
+            t2 = time.perf_counter()
+            pos = object_positions(dm.depth, f.K, m, valid=dm.valid)
+            t3 = time.perf_counter()
+            try:
+                head_position(dm.depth, f.K, f.head_box, valid=dm.valid)
+            except Exception:  # noqa: BLE001 - a frame without depth at the head still costs its time
+                pass
+            t4 = time.perf_counter()
+            if rep:
+                for k, dt in zip(t, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                    t[k] += dt
+                n_obj += len(pos.xyz)
+    ms = {k: 1000 * v / len(frames) for k, v in t.items()}
+    total = sum(ms.values())
+    return {"frames": len(frames), "ms_per_frame": ms, "total_ms": total, "frames_per_s": 1000 / total,
+            "objects_per_frame": n_obj / len(frames)}
+
+
+def segmenter_per_core(data: Path, n: int) -> dict:
+    import cv2
+
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.pipeline.config import load_pipeline
+
+    cv2.setNumThreads(1)
+    conf = load_pipeline("synthetic", data)
+    frames = list(open_dataset("gfie", data).frames())[:n]
+    depth, objects = conf.stages["depth"].make(data), conf.stages["objects"].make(data)
+    objects.warm()
+    dms = [depth.depth(f) for f in frames]
+    t0 = time.perf_counter()
+    counts = [len(objects.objects(f, dm).xyz) for f, dm in zip(frames, dms)]
+    dt = (time.perf_counter() - t0) / len(frames)
+    return {"frames": len(frames), "ms_per_frame": 1000 * dt, "frames_per_s": 1 / dt,
+            "segments_per_frame": float(np.mean(counts))}
+
+
+def recall(data: Path, base: Path, n: int) -> dict:
+    """Stored geometric positions within 10 cm of the truth masks' medians (synthetic-oracle)."""
+    from ga3ce_prep.pipeline import run_pipeline
+    from ga3ce_prep.store import open_store
+
+    stores = {}
+    for name in ("synthetic", "synthetic-oracle"):
+        out = base / f"recall-{name}.zarr"
+        run_pipeline(name, data, out, limit=n, progress=False, work_dir=base / f"recall-{name}.work")
+        stores[name] = open_store(out)
+    g, o = stores["synthetic"], stores["synthetic-oracle"]
+    gi = {fid: i for i, fid in enumerate(g.frames["id"])}
+    hit = tot = 0
+    by_size = {"<300 px": [0, 0], "300-3000 px": [0, 0], ">=3000 px": [0, 0]}
+    for j, fid in enumerate(o.frames["id"]):
+        T, A = o.objects_of(j), o.objects["area"][o.object_slice(j)]
+        G = g.objects_of(gi[fid]) if fid in gi else np.zeros((0, 3))
+        d = np.linalg.norm(T[:, None] - G[None], axis=-1).min(1) if len(G) and len(T) else np.full(len(T), np.inf)
+        ok = d < 0.10
+        hit += int(ok.sum())
+        tot += len(T)
+        for a, k in zip(A, ok):
+            b = by_size["<300 px" if a < 300 else "300-3000 px" if a < 3000 else ">=3000 px"]
+            b[0] += int(k)
+            b[1] += 1
+    return {"true_objects": tot, "within_10cm": hit, "fraction": hit / max(tot, 1),
+            "by_mask_size": {k: {"within_10cm": h, "of": n_, "fraction": h / max(n_, 1)} for k, (h, n_) in by_size.items()},
+            "geometric_per_frame": float(g.frames["obj_count"].mean()),
+            "true_per_frame": float(o.frames["obj_count"].mean())}
+
+
+def workers_scaling(data: Path, base: Path, n: int) -> dict:
+    from ga3ce_prep.pipeline import run_pipeline
+
+    out = {}
+    for w in (1, 2):
+        work = base / f"scale-{w}.work"
+        shutil.rmtree(work, ignore_errors=True)
+        shutil.rmtree(base / f"scale-{w}.zarr", ignore_errors=True)
+        s = run_pipeline("synthetic", data, base / f"scale-{w}.zarr", workers=w, limit=n, work_dir=work,
+                         shard_size=8, progress=False)
+        sec = s.extra["compute_seconds"]
+        out[w] = {"frames": s.frames_total, "compute_seconds": sec, "frames_per_s": s.frames_total / sec,
+                  "wall_seconds": s.wall_seconds}
+    out["speedup"] = out[2]["frames_per_s"] / out[1]["frames_per_s"]
+    return out
+
+
+def memory_run(data: str, out: str, n: int) -> None:
+    """(subprocess) One run on the local scheduler; prints its peak RSS in MB."""
+    from ga3ce_prep.pipeline import run_pipeline
+
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(out + ".work", ignore_errors=True)
+    s = run_pipeline("synthetic", data, out, limit=n, progress=False)
+    print(json.dumps({"frames": s.frames_total, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "wall_seconds": s.wall_seconds}))
+
+
+def memory(data: Path, base: Path, n: int) -> dict:
+    out = {}
+    for k in (1, 4):
+        p = subprocess.run([sys.executable, __file__, "--memory-child", str(data), str(base / f"mem-{k}.zarr"), str(k * n)],
+                           capture_output=True, text=True, check=True)
+        out[f"{k}x"] = json.loads(p.stdout.strip().splitlines()[-1])
+    out["growth"] = out["4x"]["peak_rss_mb"] / out["1x"]["peak_rss_mb"]
+    return out
+
+
+@click.command()
+@click.option("--frames", default=64, show_default=True, help="1x frames (the world holds 4x).")
+@click.option("--json", "json_out", default=str(ROOT / "out" / "bench" / "bench_prep.json"), show_default=True,
+              help="Where to write the figures as JSON.")
+@click.option("--memory-child", nargs=3, default=None, hidden=True)
+def main(frames, json_out, memory_child):
+    """Preprocessing benchmark (module docstring)."""
+    if memory_child:
+        data, out, n = memory_child
+        memory_run(data, out, int(n))
+        return
+    base = ROOT / "out" / "bench"
+    base.mkdir(parents=True, exist_ok=True)
+    with cpu_lock():
+        data = world(base, 4 * frames)
+        res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
+                              "note": "shared 2-core machine; provisional"}}
+        print("1/5 geometry stages per core ...", flush=True)
+        res["geometry"] = geometry_per_core(data, frames)
+        print("2/5 geometric segmenter per core ...", flush=True)
+        res["segmenter"] = segmenter_per_core(data, frames)
+        print("3/5 geometric recall vs truth masks ...", flush=True)
+        res["recall"] = recall(data, base, 4 * frames)
+        print("4/5 1 vs 2 dask workers ...", flush=True)
+        res["workers"] = workers_scaling(data, base, 2 * frames)
+        print("5/5 peak memory, 1x and 4x frames ...", flush=True)
+        res["memory"] = memory(data, base, frames)
+    Path(json_out).parent.mkdir(parents=True, exist_ok=True)
+    Path(json_out).write_text(json.dumps(res, indent=2))
+    g, s, r, w, m = res["geometry"], res["segmenter"], res["recall"], res["workers"], res["memory"]
+    ms = g["ms_per_frame"]
+    print(f"""
+ga3ce-prep preprocessing benchmark, synthetic GFIE world {WIDTH}x480 (provisional: shared machine)
+  geometry stages, 1 thread      {g['frames_per_s']:7.1f} frames/s  (target >= 100)  [load {ms['load']:.2f} + complete {ms['complete']:.2f}
+                                                      + medians {ms['medians']:.2f} ({g['objects_per_frame']:.1f} masks) + head {ms['head']:.2f} ms]
+  geometric segmenter, 1 thread  {s['frames_per_s']:7.1f} frames/s  ({s['ms_per_frame']:.1f} ms, {s['segments_per_frame']:.1f} segments per frame)
+  geometric accuracy             {r['within_10cm']}/{r['true_objects']} true objects ({100 * r['fraction']:.0f}%) with a stored position within 10 cm
+                                 by mask size: {', '.join(f"{k} {100 * v['fraction']:.0f}% of {v['of']}" for k, v in r['by_mask_size'].items())}
+  pipeline `synthetic`, 1 worker {w[1]['frames_per_s']:7.1f} frames/s  ({w[1]['frames']} frames)
+  pipeline `synthetic`, 2 workers{w[2]['frames_per_s']:7.1f} frames/s  speedup {w['speedup']:.2f}x (target >= 1.8x)
+  peak memory, {m['1x']['frames']:>4} frames      {m['1x']['peak_rss_mb']:7.0f} MB
+  peak memory, {m['4x']['frames']:>4} frames      {m['4x']['peak_rss_mb']:7.0f} MB  ({m['growth']:.2f}x; must not grow with the dataset)
+figures: {json_out}""")
+
+
+if __name__ == "__main__":
+    main()
