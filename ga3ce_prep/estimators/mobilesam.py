@@ -126,6 +126,7 @@ class OfficialDecoder:
         self.session = create_session(self.path, providers, threads, "MobileSAM decoder")
         check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
         self.batched = input_dims(self.session, "point_coords")[0] is None
+        self.max_batch = 8
         self._emb: np.ndarray | None = None
 
     def __call__(self, image_embeddings: np.ndarray, point_coords: np.ndarray, point_labels: np.ndarray,
@@ -138,10 +139,10 @@ class OfficialDecoder:
                 "orig_im_size": np.asarray(orig_hw, np.float32)}
         coords = np.asarray(point_coords, np.float32)
         labels = np.asarray(point_labels, np.float32)
-        if self.batched:
-            return self.session.run(list(outputs), {**base, "point_coords": coords, "point_labels": labels})
-        parts = [self.session.run(list(outputs), {**base, "point_coords": coords[i:i + 1],
-                                                  "point_labels": labels[i:i + 1]}) for i in range(len(coords))]
+        step = self.max_batch if self.batched else 1   # the graph upsamples 4 masks per prompt: bound memory
+        parts = [self.session.run(list(outputs), {**base, "point_coords": coords[i:i + step],
+                                                  "point_labels": labels[i:i + step]})
+                 for i in range(0, len(coords), step)]
         return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
 
     # fast-decoder interface -----------------------------------------------------------------

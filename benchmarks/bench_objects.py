@@ -1,0 +1,127 @@
+"""`make bench-objects`: MobileSAM segment-everything on one 640x480 frame, side by side in one run:
+(a) the reference order on the official ONNX files (amg_reference: one official-decoder call per grid
+point, filters on full-resolution logits, box NMS) and (b) the `mobilesam` backend
+(MobileSamSegmenter, fast decoder). Random weights let almost no candidate pass the default 0.88
+IoU filter, so the IoU threshold is set at the quantiles of the predicted IoUs that let 10%, 30% and
+100% of the candidates pass (other options at their defaults). Prints seconds per frame, the ratio,
+the share of time per step, and whether both keep the same masks; writes out/bench_objects.json.
+
+Models: ../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR.
+Run it alone (`flock /tmp/ga3ce-cpu.lock make bench-objects`): 2 threads, several minutes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET_S = 12.4   # 10x faster than the official PyTorch generator's ~124 s per frame on 2 cores
+
+
+def model_dir() -> Path:
+    return Path(os.environ.get("GA3CE_MOBILESAM_DIR", REPO.parent / "shared" / "models" / "mobilesam-random"))
+
+
+def test_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
+    """The benchmark frame: an RGB gradient with filled rectangles, an ellipse, a ring, a triangle and
+    a diagonal line, Gaussian noise sigma 4 (like the frame the official generator was timed on)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([x * 255.0 / w, y * 255.0 / h, np.full((h, w), 128.0)], -1).astype(np.float32)
+    cv2.rectangle(img, (50, 60), (200, 220), (200, 30, 30), -1)
+    cv2.rectangle(img, (400, 300), (600, 450), (30, 200, 30), -1)
+    cv2.rectangle(img, (480, 40), (600, 120), (90, 60, 160), -1)
+    cv2.ellipse(img, (320, 150), (80, 50), 20, 0, 360, (30, 30, 220), -1)
+    cv2.circle(img, (150, 380), 70, (240, 240, 0), -1)
+    cv2.circle(img, (150, 380), 35, (20, 20, 20), -1)
+    cv2.fillPoly(img, [np.array([[300, 420], [380, 300], [460, 420]])], (200, 120, 40))
+    cv2.line(img, (0, 0), (w - 1, h - 1), (255, 255, 255), 3)
+    img += rng.normal(0.0, 4.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def shares(timings: dict) -> dict:
+    total = sum(timings.values())
+    return {k: round(v / total, 3) for k, v in sorted(timings.items(), key=lambda kv: -kv[1])}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--fractions", default="0.1,0.3,1.0", help="fractions of candidates passing the IoU filter")
+    ap.add_argument("--no-reference", action="store_true", help="time only the backend")
+    ap.add_argument("--threads", type=int, default=2, help="intra-op threads")
+    ap.add_argument("--points-per-side", type=int, default=32)
+    ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
+    args = ap.parse_args()
+    cv2.setNumThreads(args.threads)
+
+    from ga3ce_prep.estimators.amg import AmgOptions
+    from ga3ce_prep.estimators.amg_reference import reference_generate
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
+
+    d = model_dir()
+    enc, dec = d / "mobile_sam_encoder.onnx", d / "mobile_sam_decoder.onnx"
+    if not enc.is_file() or not dec.is_file():
+        sys.exit(f"models not found in {d}; set GA3CE_MOBILESAM_DIR")
+    rgb = test_frame()
+    base = AmgOptions(points_per_side=args.points_per_side)
+    seg = MobileSamSegmenter(enc, dec, AmgOptions(points_per_side=args.points_per_side, pred_iou_thresh=0.0),
+                             threads=args.threads)
+    # the predicted IoUs of every candidate, to place the thresholds
+    probe = MobileSamSegmenter(enc, dec, AmgOptions(points_per_side=args.points_per_side, pred_iou_thresh=1e9),
+                               threads=args.threads, verify=False)
+    emb = probe.encoder.embed(rgb)
+    probe.decoder.set_image(emb)
+    from ga3ce_prep.estimators.amg import build_point_grid
+    from ga3ce_prep.estimators.mobilesam import transform_coords
+    pts = transform_coords(build_point_grid(args.points_per_side) * [640, 480], (480, 640))
+    ious = []
+    for b0 in range(0, len(pts), 64):
+        p = pts[b0:b0 + 64]
+        iou, _ = probe.decoder.predict_iou(np.stack([p, np.zeros_like(p)], 1), np.tile([1.0, -1.0], (len(p), 1)))
+        ious.append(iou[:, 1:4].reshape(-1))
+    ious = np.sort(np.concatenate(ious).astype(np.float32))
+    results = []
+    print(f"MobileSAM segment-everything, 640x480, {args.points_per_side}x{args.points_per_side} grid, "
+          f"{args.threads} threads; target <= {TARGET_S} s/frame at 30%")
+    for frac in [float(f) for f in args.fractions.split(",")]:
+        k = int(round(frac * len(ious)))
+        thr = 0.0 if k >= len(ious) else float(ious[len(ious) - k - 1])
+        opt = AmgOptions(**{**base.to_dict(), "pred_iou_thresh": thr})
+        seg.options = opt
+        seg.segment(rgb) if not results else None   # warm-up once
+        t = time.perf_counter()
+        r = seg.segment(rgb)
+        fast_s = time.perf_counter() - t
+        row = {"fraction": frac, "pred_iou_thresh": thr, "candidates_decoded": r.n_candidates,
+               "fast_s": round(fast_s, 3), "fast_masks": int(len(r.masks)), "fast_shares": shares(r.timings)}
+        if not args.no_reference:
+            t = time.perf_counter()
+            ref = reference_generate(seg.encoder, seg.official, rgb, opt)
+            ref_s = time.perf_counter() - t
+            row.update(reference_s=round(ref_s, 3), reference_masks=int(len(ref.masks)),
+                       reference_shares=shares(ref.timings), ratio=round(ref_s / fast_s, 2),
+                       same_masks=bool(len(ref.masks) == len(r.masks) and np.allclose(ref.scores, r.scores, atol=1e-4)))
+        results.append(row)
+        line = f"{frac:>5.0%} pass (thr {thr:+.4f}, {r.n_candidates} candidates): backend {fast_s:6.2f} s"
+        if "reference_s" in row:
+            line += f" | reference {row['reference_s']:6.2f} s | ratio {row['ratio']:5.1f}x | same masks {row['same_masks']}"
+        print(line)
+        print("   backend shares:  ", row["fast_shares"])
+        if "reference_shares" in row:
+            print("   reference shares:", row["reference_shares"])
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"threads": args.threads, "target_s_at_30pct": TARGET_S, "rows": results}, indent=2))
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()

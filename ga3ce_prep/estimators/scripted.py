@@ -1,0 +1,103 @@
+"""Small ONNX models with MobileSAM's official interfaces, for tests and weight-free demos.
+
+- `pooling_encoder(form)`: an "encoder" whose embedding is the 16x16 block mean of the normalised,
+  padded input (channel c = RGB channel c % 3), in the normalised `[1, 3, 1024, 1024]` form or
+  samexporter's `--use-preprocess` `[H, W, 3]` form (normalisation and padding inside the graph).
+- `scripted_decoder(labels)`: a "decoder" whose masks come from a label image: the prompt's first
+  point picks the label under it; mask tokens 0-2 are that label's region (predicted IoU 0.97,
+  0.97, 0.92 for an object, 0.2 for the background label 0) and token 3 the whole frame (IoU 0.6).
+  The low-res logits are +-8, postprocessed to `orig_im_size` exactly as the official export does.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from onnx import TensorProto
+
+from .amg import preprocess_shape
+from .onnx_graph import GraphBuilder
+
+MEAN = np.array([123.675, 116.28, 103.53], np.float32)
+STD = np.array([58.395, 57.12, 57.375], np.float32)
+
+
+def _pool_to_embedding(g: GraphBuilder, x: str) -> str:
+    pooled = g.op("AveragePool", x, kernel_shape=[16, 16], strides=[16, 16])     # (1, 3, 64, 64)
+    w = np.zeros((256, 3, 1, 1), np.float32)
+    w[np.arange(256), np.arange(256) % 3] = 1.0
+    return g.op("Conv", pooled, g.const(w))
+
+
+def pooling_encoder(form: str = "normalised", input_name: str | None = None, size: int = 1024):
+    """An encoder ModelProto. form "normalised": input [1, 3, size, size]; "preprocess": input
+    [H, W, 3] RGB 0-255 (samexporter --use-preprocess). `size` != 1024 makes a contract-breaking file."""
+    g = GraphBuilder(f"pooling_encoder_{form}")
+    if form == "normalised":
+        x = g.input(input_name or "image", [1, 3, size, size])
+    elif form == "preprocess":
+        img = g.input(input_name or "input_image", ["image_height", "image_width", 3])
+        x = g.transpose(g.div(g.sub(img, g.const(MEAN)), g.const(STD)), [2, 0, 1])   # (3, H, W)
+        hw = g.slice(g.op("Shape", x), [1], [3], [0])
+        pad_hw = g.sub(g.const([1024, 1024], dtype=np.int64), hw)
+        pads = g.concat([g.const([0, 0, 0], dtype=np.int64), g.const([0], dtype=np.int64), pad_hw], axis=0)   # end (0, ph, pw)
+        x = g.op("Unsqueeze", g.op("Pad", x, pads), g.const([0], dtype=np.int64))
+    else:
+        raise ValueError(f"form must be 'normalised' or 'preprocess', got {form!r}")
+    g.output(_pool_to_embedding(g, x), "image_embeddings")
+    return g.model()
+
+
+def low_res_labels(labels: np.ndarray) -> np.ndarray:
+    """An (H, W) int label image -> the (256, 256) label map of the padded 1024 frame (nearest, cell
+    centres), -1 in the padding."""
+    h, w = labels.shape
+    newh, neww = preprocess_shape(h, w)
+    resized = cv2.resize(labels.astype(np.int32), (neww, newh), interpolation=cv2.INTER_NEAREST)
+    canvas = np.full((1024, 1024), -1, np.int64)
+    canvas[:newh, :neww] = resized
+    return canvas[2::4, 2::4]
+
+
+def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input: str | None = None,
+                     mask_input_size: int = 256):
+    """A decoder ModelProto with the official inputs and outputs whose masks come from `labels`
+    ((H, W) int, 0 = background). batch_dynamic: a symbolic batch axis on point_coords/labels (else
+    fixed 1 as the official export). drop_input / mask_input_size make contract-breaking files."""
+    lab = low_res_labels(labels)
+    g = GraphBuilder("scripted_decoder")
+    batch = "batch" if batch_dynamic else 1
+    specs = [("image_embeddings", [1, 256, 64, 64]), ("point_coords", [batch, "num_points", 2]),
+             ("point_labels", [batch, "num_points"]), ("mask_input", [1, 1, mask_input_size, mask_input_size]),
+             ("has_mask_input", [1]), ("orig_im_size", [2])]
+    ins = {name: g.input(name, shape) for name, shape in specs if name != drop_input}
+    coords = ins["point_coords"]
+    first = g.reshape(g.slice(coords, [0], [1], [1]), [-1, 2])                     # (B, 2) first point
+    cell = g.op("Floor", g.div(first, g.const(4.0)))
+    cell = g.op("Clip", cell, g.const(0.0), g.const(255.0))
+    cx = g.reshape(g.slice(cell, [0], [1], [1]), [-1])
+    cy = g.reshape(g.slice(cell, [1], [2], [1]), [-1])
+    flat = g.op("Cast", g.add(g.mul(cy, g.const(256.0)), cx), to=TensorProto.INT64)
+    label = g.op("Gather", g.const(lab.reshape(-1), dtype=np.int64), flat, axis=0)  # (B,)
+    label3 = g.reshape(label, [-1, 1, 1])
+    same = g.op("Equal", g.const(lab[None], dtype=np.int64), label3)               # (B, 256, 256)
+    obj = g.op("Where", same, g.const(8.0), g.const(-8.0))
+    whole = g.add(g.mul(obj, g.const(0.0)), g.const(8.0))
+    obj4 = g.op("Unsqueeze", obj, g.const([1], dtype=np.int64))
+    low = g.concat([obj4, obj4, obj4, g.op("Unsqueeze", whole, g.const([1], dtype=np.int64))], axis=1)
+    is_obj = g.op("Cast", g.op("Greater", label, g.const(0, dtype=np.int64)), to=TensorProto.FLOAT)
+    q = g.add(g.const(0.2), g.mul(is_obj, g.const(0.77)))                            # 0.97 object, 0.2 background
+    q = g.reshape(q, [-1, 1])
+    iou = g.concat([q, q, g.sub(q, g.const(0.05)), g.add(g.mul(q, g.const(0.0)), g.const(0.6))], axis=1)
+    # the official postprocessing: 1024x1024, crop to the resized image, resize to orig_im_size
+    up = g.op("Resize", low, "", g.const([1.0, 1.0, 4.0, 4.0]), mode="linear",
+              coordinate_transformation_mode="half_pixel")
+    size = ins.get("orig_im_size") or g.const([480.0, 640.0])
+    scale = g.div(g.const(1024.0), g.op("ReduceMax", size, keepdims=1))
+    pre = g.op("Cast", g.op("Floor", g.add(g.mul(size, scale), g.const(0.5))), to=TensorProto.INT64)
+    cropped = g.op("Slice", up, g.const([0, 0], dtype=np.int64), pre, g.const([2, 3], dtype=np.int64))
+    sizes = g.concat([g.slice(g.op("Shape", low), [0], [2], [0]), g.op("Cast", size, to=TensorProto.INT64)], axis=0)
+    masks = g.op("Resize", cropped, "", "", sizes, mode="linear", coordinate_transformation_mode="half_pixel")
+    g.output(masks, "masks")
+    g.output(iou, "iou_predictions")
+    g.output(low, "low_res_masks")
+    return g.model()

@@ -1,0 +1,150 @@
+"""MobileSAM runners on small ONNX models with the official interfaces (built here with onnx.helper):
+contract errors, preprocessing in both encoder forms, coordinates, batching, and the whole automatic
+mask generator end to end with a scripted decoder whose masks come from a label image."""
+import cv2
+import numpy as np
+import onnx
+import pytest
+
+from ga3ce_prep.errors import ConfigError, ModelFileError
+from ga3ce_prep.estimators import scripted
+from ga3ce_prep.estimators.amg import AmgOptions
+from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder,
+                                             normalise_and_pad, resize_longest_side, transform_coords)
+from ga3ce_prep.estimators.onnx_runtime import resolve_providers
+from ga3ce_prep.geometry import object_positions
+
+
+def label_image(h=480, w=640):
+    """Three objects drawn with OpenCV (1 rectangle, 2 disc, 3 wide bar), 0 background."""
+    lab = np.zeros((h, w), np.int32)
+    cv2.rectangle(lab, (40, 40), (200, 200), 1, -1)
+    cv2.circle(lab, (450, 330), 90, 2, -1)
+    cv2.rectangle(lab, (300, 50), (600, 150), 3, -1)
+    return lab
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("mobilesam_scripted")
+    lab = label_image()
+    models = {"enc": scripted.pooling_encoder("normalised"), "enc_pre": scripted.pooling_encoder("preprocess"),
+              "enc_bad": scripted.pooling_encoder("normalised", size=512),
+              "dec": scripted.scripted_decoder(lab), "dec_batch": scripted.scripted_decoder(lab, batch_dynamic=True),
+              "dec_no_size": scripted.scripted_decoder(lab, drop_input="orig_im_size"),
+              "dec_bad_mask": scripted.scripted_decoder(lab, mask_input_size=128)}
+    out = {}
+    for name, m in models.items():
+        out[name] = d / f"{name}.onnx"
+        onnx.save(m, out[name])
+    out["labels"] = lab
+    return out
+
+
+def test_encoder_contract_error_names_input_and_shapes(files):
+    with pytest.raises(ModelFileError, match=r"input 'image' expected shape \[1, 3, 1024, 1024\], found \[1, 3, 512, 512\]"):
+        ImageEncoder(files["enc_bad"])
+    with pytest.raises(ModelFileError, match="not found"):
+        ImageEncoder(files["enc"].with_name("missing.onnx"))
+
+
+def test_decoder_contract_errors(files):
+    with pytest.raises(ModelFileError, match="no input named 'orig_im_size'"):
+        OfficialDecoder(files["dec_no_size"])
+    with pytest.raises(ModelFileError, match=r"input 'mask_input' expected shape \[1, 1, 256, 256\], found \[1, 1, 128, 128\]"):
+        OfficialDecoder(files["dec_bad_mask"])
+
+
+def test_providers_refuse_missing_gpu_build():
+    with pytest.raises(ConfigError, match="onnxruntime-gpu"):
+        resolve_providers("cuda")
+    assert resolve_providers("cpu") == ["CPUExecutionProvider"]
+
+
+def test_preprocessing_by_hand():
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50
+    resized = resize_longest_side(rgb)
+    assert resized.shape == (768, 1024, 3) and (resized == rgb[0, 0]).all()
+    x = normalise_and_pad(resized)
+    assert x.shape == (1, 3, 1024, 1024)
+    np.testing.assert_allclose(x[0, :, 0, 0], [(200 - 123.675) / 58.395, (100 - 116.28) / 57.12, (50 - 103.53) / 57.375],
+                               rtol=1e-6)
+    assert (x[0, :, 768:, :] == 0).all()          # zero padding at the bottom, after normalisation
+
+
+def test_encoder_forms_agree_and_pool_the_normalised_image(files):
+    rgb = np.random.default_rng(0).integers(0, 256, (300, 400, 3)).astype(np.uint8)
+    a = ImageEncoder(files["enc"]).embed(rgb)
+    b = ImageEncoder(files["enc_pre"]).embed(rgb)
+    assert ImageEncoder(files["enc_pre"]).preprocessed_input
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    x = normalise_and_pad(resize_longest_side(rgb))
+    np.testing.assert_allclose(a[0, 5], x[0, 2].reshape(64, 16, 64, 16).mean(axis=(1, 3)), atol=1e-5)  # channel 5 = B
+
+
+def test_coordinates_through_the_resize_transform():
+    pts = np.array([[640.0, 480.0], [320.0, 240.0]])
+    np.testing.assert_allclose(transform_coords(pts, (480, 640)), [[1024, 768], [512, 384]])
+    np.testing.assert_allclose(transform_coords(np.array([[100.0, 700.0]]), (720, 405)), [[100 * 576 / 405, 700 * 1024 / 720]])
+
+
+@pytest.mark.parametrize("dec", ["dec", "dec_batch"])
+def test_official_decoder_loops_or_batches(files, dec):
+    d = OfficialDecoder(files[dec])
+    assert d.batched == (dec == "dec_batch")
+    emb = np.zeros((1, 256, 64, 64), np.float32)
+    pts = transform_coords(np.array([[100.0, 100.0], [450.0, 330.0], [620.0, 460.0]]), (480, 640))
+    coords = np.stack([pts, np.zeros_like(pts)], axis=1)
+    masks, iou, low = d(emb, coords, np.tile([1.0, -1.0], (3, 1)), (480, 640))
+    assert masks.shape == (3, 4, 480, 640) and low.shape == (3, 4, 256, 256)
+    np.testing.assert_allclose(iou[:, 1], [0.97, 0.97, 0.2], atol=1e-6)    # object, object, background
+    lab = files["labels"]
+    for i, k in enumerate([1, 2]):
+        iou_px = ((masks[i, 1] > 0) & (lab == k)).sum() / ((masks[i, 1] > 0) | (lab == k)).sum()
+        assert iou_px > 0.95
+
+
+@pytest.mark.parametrize("dec", ["dec", "dec_batch"])
+def test_segment_everything_end_to_end_with_scripted_decoder(files, dec):
+    lab = files["labels"]
+    seg = MobileSamSegmenter(files["enc"], files[dec], AmgOptions(points_per_side=8), decoder_mode="official")
+    rgb = np.full((480, 640, 3), 128, np.uint8)
+    r = seg.segment(rgb)
+    # background prompts (IoU 0.2) and the whole-frame token (0.6) fail the 0.88 filter; the two copies of
+    # each object mask (0.97, 0.92) collapse in box NMS: one mask per object
+    assert len(r.masks) == 3
+    np.testing.assert_allclose(r.scores, 0.97, atol=1e-6)
+    assert (r.stability > 0.95).all()
+    for m, box in zip(r.masks, r.boxes):
+        k = np.bincount(lab[m]).argmax()
+        truth = lab == k
+        assert (m & truth).sum() / (m | truth).sum() > 0.97
+        ys, xs = np.nonzero(m)
+        assert box.tolist() == [xs.min(), ys.min(), xs.max(), ys.max()]
+    assert sorted(np.bincount(lab[m]).argmax() for m in r.masks) == [1, 2, 3]
+    # masks straight at a depth map's resolution (the orig_im_size trick), and their 3D positions
+    small = seg.segment(rgb, out_size=(240, 320))
+    assert small.masks.shape == (3, 240, 320)
+    np.testing.assert_allclose(small.areas, r.areas / 4, rtol=0.03)
+    depth = np.full((240, 320), 2.0, np.float32)
+    K = np.array([[250.0, 0, 160], [0, 250.0, 120], [0, 0, 1]])
+    pos = object_positions(depth, K, small.masks)
+    assert len(pos.xyz) == 3 and np.allclose(pos.xyz[:, 2], 2.0)
+
+
+def test_min_mask_region_area_fills_holes(files, tmp_path):
+    lab = label_image()
+    lab[100:104, 100:104] = 0                       # a 16-pixel hole in object 1
+    path = tmp_path / "dec_hole.onnx"
+    onnx.save(scripted.scripted_decoder(lab), path)
+    rgb = np.full((480, 640, 3), 128, np.uint8)
+    plain = MobileSamSegmenter(files["enc"], path, AmgOptions(points_per_side=8), decoder_mode="official").segment(rgb)
+    filled = MobileSamSegmenter(files["enc"], path, AmgOptions(points_per_side=8, min_mask_region_area=100),
+                                decoder_mode="official").segment(rgb)
+    i = [np.bincount(lab[m]).argmax() for m in plain.masks].index(1)
+    j = [np.bincount(lab[m]).argmax() for m in filled.masks].index(1)
+    hole = np.zeros(lab.shape, bool)
+    hole[99:105, 99:105] = True
+    assert (~plain.masks[i] & hole).sum() > 0 and (~filled.masks[j] & hole).sum() == 0
+    assert filled.areas[j] > plain.areas[i]
