@@ -29,24 +29,6 @@ def model_dir() -> Path:
     return Path(os.environ.get("GA3CE_MOBILESAM_DIR", REPO.parent / "shared" / "models" / "mobilesam-random"))
 
 
-def test_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
-    """The benchmark frame: an RGB gradient with filled rectangles, an ellipse, a ring, a triangle and
-    a diagonal line, Gaussian noise sigma 4 (like the frame the official generator was timed on)."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:h, 0:w]
-    img = np.stack([x * 255.0 / w, y * 255.0 / h, np.full((h, w), 128.0)], -1).astype(np.float32)
-    cv2.rectangle(img, (50, 60), (200, 220), (200, 30, 30), -1)
-    cv2.rectangle(img, (400, 300), (600, 450), (30, 200, 30), -1)
-    cv2.rectangle(img, (480, 40), (600, 120), (90, 60, 160), -1)
-    cv2.ellipse(img, (320, 150), (80, 50), 20, 0, 360, (30, 30, 220), -1)
-    cv2.circle(img, (150, 380), 70, (240, 240, 0), -1)
-    cv2.circle(img, (150, 380), 35, (20, 20, 20), -1)
-    cv2.fillPoly(img, [np.array([[300, 420], [380, 300], [460, 420]])], (200, 120, 40))
-    cv2.line(img, (0, 0), (w - 1, h - 1), (255, 255, 255), 3)
-    img += rng.normal(0.0, 4.0, img.shape)
-    return np.clip(img, 0, 255).astype(np.uint8)
-
-
 def shares(timings: dict) -> dict:
     total = sum(timings.values())
     return {k: round(v / total, 3) for k, v in sorted(timings.items(), key=lambda kv: -kv[1])}
@@ -65,12 +47,13 @@ def main() -> None:
     from ga3ce_prep.estimators.amg import AmgOptions
     from ga3ce_prep.estimators.amg_reference import reference_generate
     from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.scripted import drawn_frame
 
     d = model_dir()
     enc, dec = d / "mobile_sam_encoder.onnx", d / "mobile_sam_decoder.onnx"
     if not enc.is_file() or not dec.is_file():
         sys.exit(f"models not found in {d}; set GA3CE_MOBILESAM_DIR")
-    rgb = test_frame()
+    rgb = drawn_frame()
     base = AmgOptions(points_per_side=args.points_per_side)
     seg = MobileSamSegmenter(enc, dec, AmgOptions(points_per_side=args.points_per_side, pred_iou_thresh=0.0),
                              threads=args.threads)

@@ -301,7 +301,7 @@ class MobileSamSegmenter:
         return Segmentation(
             masks=masks,
             scores=np.array([r["iou"] for r in kept], np.float32).reshape(n),
-            areas=masks.reshape(n, -1).sum(axis=1).astype(np.int64),
+            areas=masks.sum(axis=(1, 2), dtype=np.int64),
             stability=np.array([r["stability"] for r in kept], np.float32).reshape(n),
             boxes=np.array([r["box"] for r in kept], np.int64).reshape(n, 4),
             points=np.array([r["point"] for r in kept], np.float64).reshape(n, 2),
@@ -353,7 +353,7 @@ class MobileSamSegmenter:
                 boxes = amg.masks_to_boxes(masks)
                 edge = amg.near_crop_edge(boxes, crop, [0, 0, img_hw[1], img_hw[0]])
                 idx = np.flatnonzero(ok)[~edge]
-                areas = masks[~edge].reshape(int((~edge).sum()), -1).sum(axis=1)
+                areas = masks[~edge].sum(axis=(1, 2))
                 for j, box, area in zip(idx, boxes[~edge], areas):
                     c = cand[c0 + j]
                     kept.append({"iou": float(cand_iou[c]), "stability": float(stab[j]), "box": box,

@@ -101,3 +101,21 @@ def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input
     g.output(iou, "iou_predictions")
     g.output(low, "low_res_masks")
     return g.model()
+
+
+def drawn_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
+    """A (h, w, 3) uint8 RGB test frame (the MobileSAM benchmark's): an RGB gradient with filled rectangles, an ellipse, a ring, a triangle and
+    a diagonal line, Gaussian noise sigma 4 (like the frame the official generator was timed on)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([x * 255.0 / w, y * 255.0 / h, np.full((h, w), 128.0)], -1).astype(np.float32)
+    cv2.rectangle(img, (50, 60), (200, 220), (200, 30, 30), -1)
+    cv2.rectangle(img, (400, 300), (600, 450), (30, 200, 30), -1)
+    cv2.rectangle(img, (480, 40), (600, 120), (90, 60, 160), -1)
+    cv2.ellipse(img, (320, 150), (80, 50), 20, 0, 360, (30, 30, 220), -1)
+    cv2.circle(img, (150, 380), 70, (240, 240, 0), -1)
+    cv2.circle(img, (150, 380), 35, (20, 20, 20), -1)
+    cv2.fillPoly(img, [np.array([[300, 420], [380, 300], [460, 420]])], (200, 120, 40))
+    cv2.line(img, (0, 0), (w - 1, h - 1), (255, 255, 255), 3)
+    img += rng.normal(0.0, 4.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)

@@ -1,0 +1,108 @@
+"""The fast decoder and the generator against the official MobileSAM ONNX files (random weights, seed 0):
+../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR."""
+import os
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import numpy_helper
+
+from ga3ce_prep.estimators.amg import AmgOptions
+from ga3ce_prep.estimators.amg_reference import reference_generate
+from ga3ce_prep.estimators.fast_decoder import FastDecoder
+from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder
+from ga3ce_prep.estimators.scripted import drawn_frame
+
+MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
+                             Path(__file__).resolve().parents[1].parent / "shared" / "models" / "mobilesam-random"))
+ENC, DEC = MODELS / "mobile_sam_encoder.onnx", MODELS / "mobile_sam_decoder.onnx"
+if not (ENC.is_file() and DEC.is_file()):  # CI has ../shared beside the clone; say so instead of skipping quietly
+    pytest.fail(f"MobileSAM models not found in {MODELS}; set GA3CE_MOBILESAM_DIR", pytrace=False)
+
+
+def perturbed_decoder(path: Path, seed: int = 1) -> onnx.ModelProto:
+    """The official decoder with random LayerNorm / LayerNorm2d scales and shifts. The random-weight
+    export keeps torch's init (1 and 0), shared through Identity nodes, which would leave the fast
+    decoder's LayerNorm algebra untested."""
+    m = onnx.load(str(path))
+    g, rng = m.graph, np.random.default_rng(seed)
+    dims = {t.name: list(t.dims) for t in g.initializer}
+    nodes = []
+    for n in g.node:
+        if n.op_type == "Identity" and "norm" in n.output[0] and n.input[0] in dims:
+            mean = 1.0 if n.output[0].endswith("weight") else 0.0
+            g.initializer.append(numpy_helper.from_array(
+                rng.normal(mean, 0.3, dims[n.input[0]]).astype(np.float32), n.output[0]))
+        else:
+            nodes.append(n)
+    del g.node[:]
+    g.node.extend(nodes)
+    for t in g.initializer:
+        if t.name.endswith("layers.0.norm1.weight") or t.name.endswith("layers.0.norm1.bias") \
+                or t.name in ("onnx::Mul_1771", "onnx::Add_1773"):
+            a = numpy_helper.to_array(t)
+            t.CopyFrom(numpy_helper.from_array((a + rng.normal(0, 0.3, a.shape)).astype(np.float32), t.name))
+    return m
+
+
+def prompt_grid():
+    """Single points (+ padding point), as segment-everything uses them, and a few multi-point and box
+    prompts (labels 0/1, box corners 2/3)."""
+    xs = np.linspace(20, 1000, 4)
+    single = [([[x, y], [0, 0]], [1, -1]) for x in xs for y in np.linspace(30, 740, 3)]
+    multi = [([[100, 200], [600, 500], [0, 0]], [1, 0, -1]), ([[300, 300], [700, 650], [500, 420]], [2, 3, 1])]
+    return single, multi
+
+
+@pytest.fixture(scope="module")
+def embedding():
+    from ga3ce_prep.estimators.mobilesam import ImageEncoder
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (480, 640, 3)).astype(np.uint8)
+    return ImageEncoder(ENC).embed(rgb)
+
+
+@pytest.mark.parametrize("perturb", [False, True])
+def test_fast_decoder_equals_official_decoder(embedding, tmp_path, perturb):
+    path = DEC
+    if perturb:
+        path = tmp_path / "decoder_ln.onnx"
+        onnx.save(perturbed_decoder(DEC), path)
+    official, fast = OfficialDecoder(path), FastDecoder(path)
+    fast.set_image(embedding)
+    for prompts in prompt_grid():
+        coords = np.array([p[0] for p in prompts], np.float32)
+        labels = np.array([p[1] for p in prompts], np.float32)
+        ref_iou, ref_low = official(embedding, coords, labels, (480, 640), outputs=("iou_predictions", "low_res_masks"))
+        iou, state = fast.predict_iou(coords, labels)
+        assert np.abs(iou - ref_iou).max() < 1e-4
+        sel = np.array([len(coords) - 1, 0])       # any subset, in any order
+        low = fast.low_res_masks(state, sel)
+        assert low.shape == (2, 4, 256, 256)
+        assert np.abs(low - ref_low[sel]).max() < 1e-4
+        assert np.abs(ref_low).max() > 0.1        # not trivially zero
+
+
+def test_generator_keeps_the_reference_candidates():
+    """Permissive thresholds (IoU filter off, stability offset 0.05 so scores spread, NMS off): the
+    fast generator decodes the same candidates with the same predicted IoUs and stability scores and
+    keeps the same masks, in the same order, as the reference order on the official files."""
+    rgb = drawn_frame()
+    opt = AmgOptions(points_per_side=5, pred_iou_thresh=0.0, stability_score_thresh=0.3,
+                     stability_score_offset=0.05, box_nms_thresh=1.0)
+    seg = MobileSamSegmenter(ENC, DEC, opt)
+    fast = seg.segment(rgb)
+    ref = reference_generate(seg.encoder, seg.official, rgb, opt)
+    assert len(ref.candidates) == 75 and fast.n_candidates == 75
+    assert 5 < len(ref.masks) < 75                  # the stability filter keeps some, drops others
+    assert len(fast.masks) == len(ref.masks)
+    np.testing.assert_allclose(fast.scores, ref.scores, atol=1e-5)
+    np.testing.assert_allclose(fast.stability, ref.stability, atol=2e-3)
+    np.testing.assert_array_equal(fast.points, ref.points)
+    assert np.abs(fast.boxes - ref.boxes).max() <= 1
+    diff = (fast.masks != ref.masks).reshape(len(ref.masks), -1).sum(axis=1)
+    assert diff.max() <= 0.001 * 480 * 640          # float noise at the 0 threshold only
+    # with the defaults random weights pass nothing (predicted IoUs far below 0.88), as in the reference
+    seg.options = AmgOptions(points_per_side=5)
+    assert len(seg.segment(rgb).masks) == 0
