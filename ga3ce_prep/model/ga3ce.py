@@ -32,6 +32,7 @@ class ModelConfig:
     use_pose / use_objects: False feeds the learned missing-joint embeddings / the null token alone.
     use_context: False is "appearance only": g = v, no parameters are used.
     cone_bias: add the gaze-cone bias to cross-attention (scaled by cone_bias_scale; 1 = paper).
+    norm_first: pre-LayerNorm transformer layers (False = nn.Transformer's default, post-LN).
     Fourier scales (cycles per unit): view_scale and direction_scale per unit-vector component,
     pose_distance_scale / pose_position_scale per head width, object_* per metre.
     """
@@ -49,6 +50,7 @@ class ModelConfig:
     num_encoder_layers: int = 3
     num_decoder_layers: int = 3
     dropout: float = 0.1
+    norm_first: bool = False
     head_hidden: int = 512
     view_width: int = 106
     joint_width: int = 10
@@ -108,7 +110,7 @@ class GA3CE(nn.Module):
                                              c.object_distance_scale, c.object_position_scale, gen)
         self.missing_joint = nn.Parameter(0.02 * torch.randn(len(GA3CE_JOINTS), c.joint_width, generator=gen))
         self.transformer = GazeTransformer(c.d_model, c.n_heads, c.dim_feedforward,
-                                           c.num_encoder_layers, c.num_decoder_layers, c.dropout)
+                                           c.num_encoder_layers, c.num_decoder_layers, c.dropout, c.norm_first)
         self.head = MLPHead(c.d_model, c.head_hidden)
 
     def subject_embedding(self, view_ego: torch.Tensor, pose_ego: torch.Tensor,

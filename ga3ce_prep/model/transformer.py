@@ -51,7 +51,8 @@ class GazeTransformer(nn.Module):
     """
 
     def __init__(self, d_model: int = 256, n_heads: int = 2, dim_feedforward: int = 512,
-                 num_encoder_layers: int = 3, num_decoder_layers: int = 3, dropout: float = 0.1):
+                 num_encoder_layers: int = 3, num_decoder_layers: int = 3, dropout: float = 0.1,
+                 norm_first: bool = False):
         super().__init__()
         self.n_heads = n_heads
         self.null_token = nn.Parameter(torch.zeros(1, 1, d_model))
@@ -59,7 +60,7 @@ class GazeTransformer(nn.Module):
         self.transformer = nn.Transformer(
             d_model=d_model, nhead=n_heads, num_encoder_layers=num_encoder_layers,
             num_decoder_layers=num_decoder_layers, dim_feedforward=dim_feedforward,
-            dropout=dropout, batch_first=True)
+            dropout=dropout, batch_first=True, norm_first=norm_first)
         # plain padded tensors: the prototype nested-tensor path changes nothing but speed and warns
         self.transformer.encoder.use_nested_tensor = False
 

@@ -30,7 +30,7 @@ from ..model import GA3CE, ModelConfig, angular_loss
 from ..store import open_store
 from .augment import view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
-from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
+from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
 from .evaluate import predict
 from .plots import plot_curves
 from .schedule import warmup_cosine_lr
@@ -131,6 +131,22 @@ def _val_mae(model: GA3CE, ds: ContextDataset | None, device: torch.device, n_ma
     return float(np.degrees(np.arccos(cos)).mean())
 
 
+def train_step(model: GA3CE, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
+               grad_clip: float) -> torch.Tensor:
+    """One optimiser step on batch b with view prior `view` (B, 3) (augmented or not): forward,
+    arccos loss, backward, gradient clipping at L2 norm grad_clip, AdamW at learning rate lr.
+    Returns the batch's mean loss (radians, detached)."""
+    g = model(view, b.pose, b.head_pos, b.objects, b.mask)
+    loss = angular_loss(g, b.gaze)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], grad_clip)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    optimizer.step()
+    return loss.detach()
+
+
 def train(config: TrainConfig, resume: bool = False, force: bool = False,
           stop_after_epochs: int | None = None) -> Path:
     """Train GA3CE on config.store into the run folder config.out; returns the run folder.
@@ -222,15 +238,8 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
         for idx in bar:
             b = train_ds.batch(idx, config.n_max).to(device)
             view = view_noise(b.view, noise_gen, config.view_noise_amplitude) if use_noise else b.view
-            g = model(view, b.pose, b.head_pos, b.objects, b.mask)
-            loss = angular_loss(g, b.gaze)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
             lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            optimizer.step()
+            loss = train_step(model, optimizer, b, view, lr, config.grad_clip)
             step += 1
             sum_loss += loss.item() * len(idx)
             n_seen += len(idx)
