@@ -16,6 +16,7 @@ import numpy as np
 
 from ..geometry import project, scale_intrinsics
 from .config import CameraConfig
+from .meshes import cross3
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -90,9 +91,9 @@ def look_rotation(forward: np.ndarray, roll: float = 0.0) -> np.ndarray:
     rolled by `roll` rad about the optical axis."""
     z = np.asarray(forward, np.float64)
     z = z / np.linalg.norm(z)
-    x = np.cross(z, UP)
+    x = cross3(z, UP)
     x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
+    y = cross3(z, x)
     R = np.stack([x, y, z])
     if roll:
         c, s = np.cos(roll), np.sin(roll)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .meshes import cross3
 from .person import from_rotvec
 
 
@@ -30,7 +31,7 @@ def slerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
     if th < 1e-9:
         return a
     if np.pi - th < 1e-6:  # opposite: turn about z (or any axis orthogonal to a)
-        ax = unit(np.cross(a, [0.0, 0.0, 1.0])) if abs(a[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+        ax = unit(cross3(a, [0.0, 0.0, 1.0])) if abs(a[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
         return unit(np.cos(t * np.pi) * a + np.sin(t * np.pi) * ax)
     return unit((np.sin((1 - t) * th) * a + np.sin(t * th) * b) / np.sin(th))
 

@@ -36,8 +36,11 @@ class NoiseBank:
 
 def rgb_sensor(rgb: np.ndarray, cfg: RenderConfig, bank: NoiseBank, rng: np.random.Generator) -> np.ndarray:
     """Shaded colour (H, W, 3) float in [0, 1] to a noisy (H, W, 3) uint8 RGB image."""
-    img = rgb * 255.0 + cfg.rgb_noise * bank.crop(bank.rgb, rng)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    img = bank.crop(bank.rgb, rng) * np.float32(cfg.rgb_noise)
+    img += rgb * np.float32(255.0)
+    img += np.float32(0.5)
+    np.clip(img, 0, 255, out=img)
+    return img.astype(np.uint8)
 
 
 @dataclass

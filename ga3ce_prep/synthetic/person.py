@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import skeleton
 from . import meshes
+from .meshes import cross3
 
 PARENTS = np.array(skeleton.PARENTS)
 REF_HEIGHT = 1.75
@@ -124,10 +125,10 @@ def head_frame(direction: np.ndarray, roll: float = 0.0) -> np.ndarray:
     relative to world z unless `roll` (rad) is given."""
     f = np.asarray(direction, np.float64)
     f = f / np.linalg.norm(f)
-    left = np.cross([0.0, 0.0, 1.0], f)
+    left = cross3([0.0, 0.0, 1.0], f)
     n = np.linalg.norm(left)
     left = left / n if n > 1e-6 else np.array([0.0, 1.0, 0.0])
-    up = np.cross(f, left)
+    up = cross3(f, left)
     H = np.stack([f, left, up], axis=1)
     return H @ meshes.rot_x(roll) if roll else H
 
@@ -225,7 +226,7 @@ def reach_arm(body: Body, joints: np.ndarray, side: int, target: np.ndarray, amo
     d = float(np.clip(np.linalg.norm(dv), abs(a - b) + 1e-3, a + b - 1e-4))
     u = dv / max(np.linalg.norm(dv), 1e-9)
     goal = S + u * d
-    lateral = np.cross([0.0, 0.0, 1.0], u)
+    lateral = cross3([0.0, 0.0, 1.0], u)
     pole = np.array([0.0, 0.0, -1.0]) + (0.4 if side == 1 else -0.4) * lateral
     pole = pole - (pole @ u) * u
     n = np.linalg.norm(pole)
@@ -280,7 +281,7 @@ def person_mesh(body: Body, joints: np.ndarray, G: np.ndarray) -> tuple[np.ndarr
         z = (joints[b] - joints[a]) / max(np.linalg.norm(joints[b] - joints[a]), 1e-9)
         x = R[:, 0] - (R[:, 0] @ z) * z
         x /= np.linalg.norm(x)
-        Rt = np.stack([x, np.cross(z, x), z], axis=1)
+        Rt = np.stack([x, cross3(z, x), z], axis=1)
         parts.append(((hv * np.array([dep * s, w * s, half])) @ Rt.T + mid, hf))
         cols.append((len(hf), col[slot]))
     c, R, ax = head_ellipsoid(body, joints, G)
