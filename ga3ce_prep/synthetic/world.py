@@ -293,8 +293,10 @@ class Scene:
         eye, tgt, hc = to(step.eye), to(step.target.point), to(step.head_centre)
         head_R = cam.R @ step.head_R
         clip = np.array([0, 0, W - 1, H - 1], float)
-        hb = ellipsoid_bbox(K, hc, head_R, step.head_axes)
-        hb = np.clip(hb, clip[:2].tolist() * 2, clip[2:].tolist() * 2)
+        if hc[2] - step.head_axes.max() > 0.05:  # the whole head in front of the camera
+            hb = np.clip(ellipsoid_bbox(K, hc, head_R, step.head_axes), clip[:2].tolist() * 2, clip[2:].tolist() * 2)
+        else:
+            hb = np.full(4, np.nan)
         uv = project(to(step.mesh[0]), K)
         uv = uv[np.isfinite(uv).all(axis=1)]
         bb = np.concatenate([uv.min(0), uv.max(0)]) if len(uv) else np.full(4, np.nan)
