@@ -67,12 +67,11 @@ def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
 
 
 def test_planned_backend_is_not_available_yet(tmp_path):
-    enc, dec = tmp_path / "enc.onnx", tmp_path / "dec.onnx"
-    enc.write_bytes(b"x")
-    dec.write_bytes(b"x")
-    with pytest.raises(ConfigError, match=r"stages.objects.backend: 'mobilesam' .* is not available yet.*geometric, oracle"):
-        load_pipeline(_base(), tmp_path, overrides={"stages.objects": {"backend": "mobilesam", "params": {
-            "encoder": str(enc), "decoder": str(dec)}}})
+    model = tmp_path / "zoedepth.onnx"
+    model.write_bytes(b"x")
+    with pytest.raises(ConfigError, match=r"stages.depth.backend: 'zoedepth' .* is not available yet.*oracle, sensor"):
+        load_pipeline(_base(), tmp_path, overrides={"stages.depth": {"backend": "zoedepth", "params": {
+            "model": str(model)}}})
 
 
 def test_missing_data_files_fail_before_any_work(tmp_path, synth_world):

@@ -15,6 +15,7 @@ restructured decoder of fast_decoder.py (`decoder="fast"`, default) or the offic
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -217,6 +218,7 @@ class MobileSamSegmenter:
         self.encoder = ImageEncoder(encoder, self.providers, threads)
         self.official = OfficialDecoder(decoder, self.providers, threads)
         self.decoder_mode = decoder_mode
+        self._lock = threading.Lock()   # the decoders keep the current image: one segment() at a time
         if decoder_mode == "fast":
             from .fast_decoder import FastDecoder
 
@@ -255,8 +257,12 @@ class MobileSamSegmenter:
     def segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None = None) -> Segmentation:
         """Segment everything in an (H, W, 3) uint8 RGB image. out_size = (h, w) of the returned masks
         (e.g. the depth map's; default the image's). Filters run at the image resolution, as the
-        reference's; the returned masks are the kept candidates' logits resampled to out_size."""
-        rgb = _check_rgb(rgb)
+        reference's; the returned masks are the kept candidates' logits resampled to out_size.
+        Thread-safe (calls are serialised)."""
+        with self._lock:
+            return self._segment(_check_rgb(rgb), out_size)
+
+    def _segment(self, rgb: np.ndarray, out_size) -> Segmentation:
         opt = self.options
         img_hw = rgb.shape[:2]
         out_hw = tuple(out_size) if out_size is not None else img_hw

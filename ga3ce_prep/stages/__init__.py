@@ -46,7 +46,7 @@ BACKENDS: dict[str, str | Planned] = {
     "depth/zoedepth": Planned("monocular metric depth through ONNX Runtime (ZoeDepth)"),
     "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
     "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
-    "objects/mobilesam": Planned("MobileSAM segment-everything through ONNX Runtime"),
+    "objects/mobilesam": "ga3ce_prep.stages.objects_mobilesam:MobileSAMObjects",
     "head/depth": "ga3ce_prep.stages.head:DepthHead",
     "pose/precomputed": "ga3ce_prep.stages.pose:PrecomputedPose",
     "pose/oracle": "ga3ce_prep.stages.pose:OraclePose",
