@@ -10,7 +10,7 @@ from ga3ce_prep.synthetic.camera import intrinsics
 from ga3ce_prep.synthetic.config import load_config
 from ga3ce_prep.synthetic.generate import generate
 from ga3ce_prep.synthetic.room import build_room
-from ga3ce_prep.synthetic.stats import world_statistics
+from ga3ce_prep.synthetic.stats import object_snap, world_statistics
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.synthetic.world import Scene
 
@@ -144,6 +144,11 @@ def test_world_statistics(gfie_world):
     assert 10 <= s["objects_per_frame"] <= 60
     assert abs(s["target_object"] + s["target_space"] + s["target_out_of_view"] - 1) < 1e-9
     assert 3 < s["eye_in_head_offset_mean_deg"] <= 25.5
+    # the objects carry gaze signal: snapping a 20-degree noisy v to the nearest visible object
+    # brings object-target frames closer to the truth
+    snap = object_snap(tr, view_error_deg=20.0)
+    assert abs(snap["v_error_deg"] - 20.0) < 3.0
+    assert snap["snap_error_object_targets_deg"] < snap["v_error_object_targets_deg"] - 1.0
 
 
 @pytest.mark.parametrize("count,size", [((12, 12), (0.05, 0.1)), ((40, 40), (0.2, 0.3))])

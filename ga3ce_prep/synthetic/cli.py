@@ -40,8 +40,10 @@ def synth(fmt, out, scenes, frames_per_scene, seed, width, height, config, quiet
     secs = rep.total_seconds
     click.echo(f"wrote {rep.frames} {fmt} frames ({rep.steps} time steps, {scenes} scenes) to {rep.out} "
                f"in {secs:.1f} s ({rep.frames / max(secs, 1e-9):.1f} frames/s)")
-    from .stats import format_statistics, world_statistics
+    from .stats import format_statistics, object_snap, world_statistics
     from .truth import TruthReader
 
     with TruthReader(rep.out) as tr:
         click.echo("world statistics:\n" + format_statistics(world_statistics(tr)))
+        click.echo("objects as gaze evidence (v = truth + 20 deg noise; snap v to the nearest visible object):\n"
+                   + format_statistics(object_snap(tr)))

@@ -44,3 +44,40 @@ def world_statistics(truth: TruthReader) -> dict[str, float]:
 def format_statistics(s: dict[str, float]) -> str:
     """One line per statistic."""
     return "\n".join(f"  {k:30s} {v:8.3f}" for k, v in s.items())
+
+
+def object_snap(truth: TruthReader, view_error_deg: float = 20.0, max_snap_deg: float = 30.0,
+                seed: int = 0) -> dict[str, float]:
+    """How much the objects can tell about the gaze, without any learning: v = the truth gaze
+    plus isotropic noise of mean angle `view_error_deg`; "snap" replaces v by the direction from
+    the eye to the visible object centroid nearest to v (within max_snap_deg). Returns the mean
+    angular errors (deg) of v and of the snap against the truth, over all frames and over frames
+    with object targets. A snap error below v's means the objects carry gaze signal."""
+    rng = np.random.default_rng(seed)
+    n = len(truth)
+    g = truth.gaze
+    # per-axis Gaussian noise: the angle is ~ Rayleigh, mean sigma * sqrt(pi / 2)
+    sigma = np.radians(view_error_deg) / np.sqrt(np.pi / 2)
+    v = g + rng.normal(0.0, sigma, (n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    kinds = truth.object_kinds
+    obj = kinds.index("object")
+    ok, pix, cen = truth._objects["kind"] == obj, truth._objects["pixels"] > 0, truth._objects["centroid"]
+    snap = v.copy()
+    cos_max = np.cos(np.radians(max_snap_deg))
+    for i in range(n):
+        s, c = int(truth.obj_start[i]), int(truth.obj_count[i])
+        sel = ok[s:s + c] & pix[s:s + c]
+        if not sel.any():
+            continue
+        d = cen[s:s + c][sel] - truth.eye[i]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        cs = d @ v[i]
+        k = int(np.argmax(cs))
+        if cs[k] >= cos_max:
+            snap[i] = d[k]
+    ev, es = angular_error_deg(v, g), angular_error_deg(snap, g)
+    is_obj = truth.target_kind == 0
+    return {"v_error_deg": float(ev.mean()), "snap_error_deg": float(es.mean()),
+            "v_error_object_targets_deg": float(ev[is_obj].mean()) if is_obj.any() else float("nan"),
+            "snap_error_object_targets_deg": float(es[is_obj].mean()) if is_obj.any() else float("nan")}
