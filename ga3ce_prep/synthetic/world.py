@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import skeleton
 from . import gaze as gz
+from ..errors import ConfigError
 from ..geometry import project, scale_intrinsics
 from .camera import Camera, ellipsoid_bbox, sample_camera
 from .config import POSTURES, SynthConfig
@@ -26,8 +26,8 @@ from .targets import OBJECT, SPACE, Target, TargetSampler
 from .truth import ObjectTable, TruthFrame
 
 
-class SceneError(RuntimeError):
-    """No valid layout was found for a scene (should not happen with sane configs)."""
+class SceneError(ConfigError):
+    """No valid layout was found for a scene (the config leaves no room for person and camera)."""
 
 
 @dataclass
@@ -359,7 +359,3 @@ class Scene:
         f = self.walkable
         return 0 <= iy < f.shape[0] and 0 <= ix < f.shape[1] and bool(f[iy, ix])
 
-
-def keypoint_body25(joints_cam: np.ndarray) -> np.ndarray:
-    """BODY_25 joints (25, 3) of a camera-frame smpl+head_30 pose (30, 3)."""
-    return joints_cam[list(skeleton.BODY25_FROM_SMPL30)]
