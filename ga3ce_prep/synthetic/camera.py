@@ -56,14 +56,16 @@ class Camera:
         camera-frame z is 1, so a hit's t is its depth z."""
         x1 = self.width if x1 is None else x1
         y1 = self.height if y1 is None else y1
-        K = self.K
-        u = (np.arange(x0, x1, dtype=np.float64) - K[0, 2]) / K[0, 0]
-        v = (np.arange(y0, y1, dtype=np.float64) - K[1, 2]) / K[1, 1]
+        K, R = self.K, self.R.astype(np.float32)
+        u = ((np.arange(x0, x1, dtype=np.float64) - K[0, 2]) / K[0, 0]).astype(np.float32)
+        v = ((np.arange(y0, y1, dtype=np.float64) - K[1, 2]) / K[1, 1]).astype(np.float32)
         # direction_world = R^T @ (u, v, 1) = u * Rx + v * Ry + Rz (rows of R)
-        d = u[None, :, None] * self.R[0] + v[:, None, None] * self.R[1] + self.R[2]
         out = np.empty((y1 - y0, x1 - x0, 6), np.float32)
         out[..., :3] = self.C
-        out[..., 3:] = d
+        d = out[..., 3:]
+        d[...] = R[2]
+        d += u[None, :, None] * R[0]
+        d += v[:, None, None] * R[1]
         return out
 
     @property

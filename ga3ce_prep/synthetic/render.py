@@ -92,17 +92,24 @@ def shade(albedo: np.ndarray, normal: np.ndarray, view_dir: np.ndarray, points: 
     (N, 3) ray directions; points (N, 3) world; tex_dir (N, 3), tex_freq (N,) stripe texture;
     shiny (N,) adds a specular highlight; light (3,) direction the light travels.
     """
-    vd = view_dir / np.linalg.norm(view_dir, axis=1, keepdims=True)
-    n = np.where((np.sum(normal * vd, axis=1) > 0)[:, None], -normal, normal)
-    diffuse = np.maximum(0.0, -(n @ light))
-    fill = np.abs(np.sum(n * vd, axis=1))
-    tex = 1.0 + cfg.texture * np.sin(2 * np.pi * tex_freq * np.sum(points * tex_dir, axis=1))
-    lum = (cfg.ambient + cfg.diffuse * diffuse + cfg.fill * fill) * tex
-    rgb = albedo * lum[:, None]
+    f32 = np.float32
+    light = np.asarray(light, f32)
+    vd = view_dir.astype(f32, copy=False)
+    vd = vd * (1.0 / np.sqrt(np.einsum("ij,ij->i", vd, vd)))[:, None]
+    nrm = normal.astype(f32, copy=False)
+    ndv = np.einsum("ij,ij->i", nrm, vd)
+    sign = np.where(ndv > 0, f32(-1), f32(1))  # flip normals toward the viewer
+    diffuse = np.maximum(f32(0), -sign * (nrm @ light))
+    fill = np.abs(ndv)
+    phase = (f32(2 * np.pi) * tex_freq.astype(f32, copy=False)) * np.einsum("ij,ij->i", points.astype(f32, copy=False),
+                                                                           tex_dir.astype(f32, copy=False))
+    lum = (f32(cfg.ambient) + f32(cfg.diffuse) * diffuse + f32(cfg.fill) * fill) * (f32(1) + f32(cfg.texture) * np.sin(phase))
+    rgb = albedo.astype(f32, copy=False) * lum[:, None]
     if shiny.any():
+        n = nrm * sign[:, None]
         r = light - 2 * (n @ light)[:, None] * n  # reflected light direction
-        spec = np.maximum(0.0, -np.sum(r * vd, axis=1)) ** 24
-        rgb = rgb + (0.7 * spec * shiny)[:, None]
+        spec = np.maximum(f32(0), -np.einsum("ij,ij->i", r, vd)) ** 24
+        rgb = rgb + (f32(0.7) * spec * shiny)[:, None]
     return rgb.astype(np.float32)
 
 
