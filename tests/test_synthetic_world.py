@@ -7,7 +7,8 @@ import pytest
 
 from ga3ce_prep.geometry import angular_error_deg, back_project, depth_to_points, project
 from ga3ce_prep.synthetic.camera import intrinsics
-from ga3ce_prep.synthetic.config import load_config
+from ga3ce_prep.synthetic.config import DepthConfig, load_config
+from ga3ce_prep.synthetic.noise import depth_sigma
 from ga3ce_prep.synthetic.generate import generate
 from ga3ce_prep.synthetic.room import build_room
 from ga3ce_prep.synthetic.stats import object_snap, world_statistics
@@ -62,10 +63,10 @@ def test_projected_truth_is_the_written_2d(gfie_world):
 
 
 def test_object_targets_are_on_the_rendered_surface(gfie_world):
-    _, tr = gfie_world
+    out, tr = gfie_world
     kinds = tr.target_kind
     assert (kinds == 0).mean() > 0.5
-    checked = 0
+    checked = n_sensor = 0
     for i in np.flatnonzero((kinds == 0) & tr.target_visible):
         u, v = np.round(tr.gaze_2d[i]).astype(int)
         inst = tr.instance(i)
@@ -74,8 +75,14 @@ def test_object_targets_are_on_the_rendered_surface(gfie_world):
         # the pixel's ray passes within half a pixel of the target: a few mm at these distances
         tol = 0.01 + 2.0 * tr.gaze_target[i, 2] / tr.K[i][0, 0]
         assert np.linalg.norm(p - tr.gaze_target[i]) < tol
+        # the written sensor depth agrees within its noise (where it is not a hole)
+        z = float(np.load(out / "depth" / f"{tr.frame_ids[i]}.npy")[v, u])
+        if np.isfinite(z):
+            q = back_project(np.float64(u), np.float64(v), z, tr.K[i])
+            assert np.linalg.norm(q - tr.gaze_target[i]) < tol + 4 * depth_sigma(z, DepthConfig())
+            n_sensor += 1
         checked += 1
-    assert checked >= 10
+    assert checked >= 10 and n_sensor >= 5
 
 
 def test_instance_masks_back_project_onto_their_meshes():
