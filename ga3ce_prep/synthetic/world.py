@@ -100,6 +100,7 @@ class Scene:
         rng, cfg = self.rng, self.cfg
         self.room = room
         self.static = StaticScene(room)
+        found = None
         for _ in range(6):
             if self.posture == "sitting":
                 home, heading = room.seat.xy - 0.08 * np.array([np.cos(room.seat.yaw), np.sin(room.seat.yaw)]), room.seat.yaw
@@ -136,10 +137,17 @@ class Scene:
                 if best is None:
                     break
                 cams.append(best)
-            if len(cams) == n:
-                self.home, self.heading0, self.cameras = home, heading, cams
-                return True
-        return False
+                if c == 0:
+                    primary_score = best_score
+            # keep the layout whose primary camera sees the most usable objects; stop at 3
+            if len(cams) == n and (found is None or primary_score > found[0]):
+                found = (primary_score, home, heading, cams)
+                if primary_score >= 3:
+                    break
+        if found is None:
+            return False
+        _, self.home, self.heading0, self.cameras = found
+        return True
 
     def _objects_seen(self, cam: Camera, head: np.ndarray, heading: float) -> int:
         """How many objects a camera sees (at least ~30 px at 640x480, from a quarter-size render)
@@ -229,10 +237,15 @@ class Scene:
                     off = gz.wrap(np.arctan2(d[1], d[0]) - heading)
                     if posture == "standing" and abs(off) > np.radians(60):  # turn round to it
                         heading = gz.wrap(heading + off - np.sign(off) * np.radians(rng.uniform(0, 40)))
+                cap = np.radians(g.eye_offset_max + 0.5)
                 sol = self._solve(fix, root_xy, eye_est, heading, posture, phase, seat_h, prev_yaw, prev_head,
                                   a_head, a_body)
+                if gz.angle(sol[3], sol[4]) > cap and prev_yaw is not None:
+                    # the smoothed body and head lag behind a large turn: turn at once instead
+                    sol = self._solve(fix, root_xy, eye_est, heading, posture, phase, seat_h, None, None,
+                                      a_head, a_body)
                 joints, G, eye, gaze, head_dir, yaw_state = sol
-                if gz.angle(gaze, head_dir) <= np.radians(g.eye_offset_max + 0.5) or attempt == 3:
+                if gz.angle(gaze, head_dir) <= cap or attempt == 3:
                     break
                 fix = None
             target = fix.target.point
