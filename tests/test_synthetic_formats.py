@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ga3ce_prep import skeleton
 from ga3ce_prep.datasets import cad120, gafa, gfie
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.geometry import project
@@ -144,7 +145,7 @@ def test_gafa_layout_pickles_and_cameras(datasets):
                     # detected keypoints sit on the projected joints (a few px of noise); zeros are undetected
                     det = kp[j, :, 2] > 0
                     assert det.sum() >= 5
-                    ref = project(tt.pose[list(__import__("ga3ce_prep.skeleton", fromlist=["x"]).BODY25_FROM_SMPL30)], tt.K)
+                    ref = project(tt.pose[list(skeleton.BODY25_FROM_SMPL30)], tt.K)
                     assert np.abs(kp[j, det, :2] - ref[det]).max() < 4.0
                     assert (kp[j, ~det] == 0).all()
                 # all cameras view the same motion: head positions agree in the world frame
