@@ -320,6 +320,9 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     def rowdot(a, b):   # sum over last axis, keepdims -> (B, P, 1)
         return g.reduce_sum(g.mul(a, b), [-1])
 
+    def headdot(a, b):  # (B, H, P, T) x (B, H, P, T) summed over heads and tokens -> (B, P, 1)
+        return g.reshape(g.reduce_sum(g.mul(a, b), [1, 3]), [0, P, 1])
+
     def ln(x, key):
         return g.layer_norm(x, w[key + ".g"], w[key + ".b"], eps)
 
@@ -364,8 +367,8 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     vt0hT = g.transpose(vt0h, [0, 1, 3, 2])                                         # (B, H, D, T)
     m0 = per_head_right(vt0h, _heads_rows(d.wo0))                                   # M~0 (B, HT, C)
     g0 = g.mm(m0, g.transpose(m0, [0, 2, 1]))
-    dx0 = to_cat(g.mm(img["Sx0"], vt0hT))                                           # s~ M~0^T (B, P, HT)
-    var1 = g.add(g.add(img["ssq"], g.mul(g.const(2.0), rowdot(a0c, dx0))), rowdot(a0c, g.mm(a0c, g0)))
+    dx0 = g.mm(img["Sx0"], vt0hT)                                                   # s~ M~0^T (B, H, P, T)
+    var1 = g.add(g.add(img["ssq"], g.mul(g.const(2.0), headdot(a0, dx0))), rowdot(a0c, g.mm(a0c, g0)))
     r1 = g.op("Reciprocal", g.op("Sqrt", g.add(g.div(var1, g.const(float(C))), g.const(eps))))  # (B, P, 1)
 
     # ---- layer 1 -----------------------------------------------------------------------------
@@ -407,13 +410,16 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     n0 = per_head_right(vt0h, _heads_rows(d.wn0))                                   # N0 (B, HT, C)
     m1 = per_head_right(vt1h, _heads_rows(d.wo1))                                   # M~1 (B, HT, C)
     n0T, m1T = g.transpose(n0, [0, 2, 1]), g.transpose(m1, [0, 2, 1])
-    d0 = to_cat(g.mm(img["Sy0"], vt0hT))
-    d1 = to_cat(g.mm(img["Sy1"], vt1hT))
+    d0 = g.mm(img["Sy0"], vt0hT)                                                    # (B, H, P, T)
+    d1 = g.mm(img["Sy1"], vt1hT)
     beta = g.const(d.beta_c.reshape(C, 1))
-    t00 = g.add(g.add(img["S2sq"], g.mul(g.const(2.0), rowdot(a0c, d0))), rowdot(a0c, g.mm(a0c, g.mm(n0, n0T))))
+    a0g = g.mm(a0c, g.concat([g.mm(n0, n0T), g.mm(n0, m1T), g.mm(n0, beta)], axis=-1))   # (B, P, 2HT + 1)
+    a0g00 = g.op("Slice", a0g, g.const([0], dtype=np.int64), ht, g.const([2], dtype=np.int64))
+    a0g01 = g.op("Slice", a0g, ht, g.mul(ht, g.const([2], dtype=np.int64)), g.const([2], dtype=np.int64))
+    a0n0 = g.slice(a0g, [-1], [2 ** 62], [2])
+    t00 = g.add(g.add(img["S2sq"], g.mul(g.const(2.0), headdot(a0, d0))), rowdot(a0c, a0g00))
     t11 = g.add(rowdot(a1c, g.mm(a1c, g.mm(m1, m1T))), g.const(float(d.beta_c @ d.beta_c)))
-    t01 = g.add(g.add(rowdot(a1c, d1), rowdot(a1c, g.mm(a0c, g.mm(n0, m1T)))),
-                g.add(img["S2b"], g.mm(a0c, g.mm(n0, beta))))
+    t01 = g.add(g.add(headdot(a1, d1), rowdot(a1c, a0g01)), g.add(img["S2b"], a0n0))
     t1 = g.mm(a1c, g.mm(m1, beta))
     var2 = g.add(g.add(g.mul(g.mul(r1, r1), t00), t11), g.mul(g.const(2.0), g.add(g.mul(r1, t01), t1)))
     r2 = g.op("Reciprocal", g.op("Sqrt", g.add(g.div(var2, g.const(float(C))), g.const(eps))))
@@ -483,17 +489,29 @@ def build_mask_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     rc1 = g.reshape(g.mm(vt1h, g.const(_heads_rows(d.wo1 @ (d.g2[:, None] * d.wc)))), [0, -1, C])
     cc = d.beta_c @ (d.g2[:, None] * d.wc)
     cb = d.w["layers.1.norm4.b"] @ d.wc + d.conv_bias
-    inner = g.add(g.add(g.mul(st["r1"], g.add(sc, g.mm(st["A0c"], rc0))), g.mm(st["A1c"], rc1)), g.const(cc))
-    y = g.add(g.mul(st["r2"], inner), g.const(cb))                                # (K, P, 256) = keys2 @ Wc + b
+    # keys2 @ Wc + b = r2 r1 SC + [r2 r1 A0c | r2 A1c | r2 | 1] @ [RC0; RC1; cc; cb]: one product, 2 passes
+    r2, r21 = st["r2"], g.mul(st["r2"], st["r1"])
+    ones = g.add(g.mul(r2, g.const(0.0)), g.const(1.0))
+    left = g.concat([g.mul(st["A0c"], r21), g.mul(st["A1c"], r2), r2, ones], axis=-1)   # (K, P, 2HT + 2)
+    k_dim = g.slice(g.op("Shape", rc0), [0], [1], [0])
+    right = g.concat([rc0, rc1, g.op("Expand", g.const(np.stack([cc, cb])[None]),
+                                     g.concat([k_dim, g.const([2, C], dtype=np.int64)], axis=0))], axis=1)
+    y = g.add(g.mul(sc, r21), g.mm(left, right))                                    # (K, P, 256) = keys2 @ Wc + b
     y = g.reshape(y, [0, P, 4, 64])
     y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))
     w2 = w["up3.w"].transpose(0, 2, 3, 1).reshape(64, 4 * 32)                      # cols (kh2, kw2, o2)
     z = g.gelu(g.add(g.mm(y, g.const(w2)), g.const(np.tile(w["up3.b"], 4))))       # (K, P, 4, 128)
     z = g.reshape(z, [0, P * 16, 32])
-    m = g.mm(z, g.transpose(st["hyper_in"], [0, 2, 1]))                            # (K, P*16, 4)
-    m = g.transpose(g.reshape(m, [0, 64, 64, 2, 2, 2, 2, 4]), [0, 7, 1, 3, 5, 2, 4, 6])
-    g.output(g.reshape(m, [0, 4, LOW_RES, LOW_RES]), "low_res_masks")
+    g.output(g.mm(z, g.transpose(st["hyper_in"], [0, 2, 1])), "low_res_raw")   # (K, P*16, 4)
     return g.model()
+
+
+def raw_to_image(raw: np.ndarray) -> np.ndarray:
+    """The mask graph's (..., 4096*16) logits in (y, x, kh, kw, kh2, kw2) order -> (..., 256, 256):
+    pixel row 4y + 2kh + kh2, column 4x + 2kw + kw2 (the two stride-2 transposed convolutions)."""
+    lead = raw.shape[:-1]
+    r = raw.reshape(-1, 64, 64, 2, 2, 2, 2).transpose(0, 1, 3, 5, 2, 4, 6)
+    return r.reshape(*lead, LOW_RES, LOW_RES)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -538,11 +556,23 @@ class FastDecoder:
         vals = dict(zip(self._token_outputs, self._tokens.run_with_ort_values(self._token_outputs, feeds)))
         return vals["iou_predictions"].numpy(), {k: vals[k] for k in STATE}
 
-    def low_res_masks(self, state: dict, index: np.ndarray) -> np.ndarray:
-        """(K, 4, 256, 256) float32 mask logits of the prompts `index` of a predict_iou batch."""
+    def low_res_raw(self, state: dict, index: np.ndarray) -> np.ndarray:
+        """(K, 4096*16, 4) float32 mask logits of the prompts `index` of a predict_iou batch, in the
+        mask graph's pixel order (see raw_to_image)."""
         import onnxruntime as ort
 
         feeds = dict(state)
         feeds["SC"] = self._img["SC"]
         feeds["index"] = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(index, np.int64))
-        return self._masks.run_with_ort_values(["low_res_masks"], feeds)[0].numpy()
+        return self._masks.run_with_ort_values(["low_res_raw"], feeds)[0].numpy()
+
+    def low_res_masks(self, state: dict, index: np.ndarray) -> np.ndarray:
+        """(K, 4, 256, 256) float32 mask logits of the prompts `index` of a predict_iou batch."""
+        return raw_to_image(np.moveaxis(self.low_res_raw(state, index), -1, 1))
+
+    def candidate_masks(self, state: dict, prompt: np.ndarray, token: np.ndarray) -> np.ndarray:
+        """(n, 256, 256) logits of candidates (prompt index in the batch, mask token 0..3); each
+        prompt's masks are decoded once."""
+        uniq, rows = np.unique(prompt, return_inverse=True)
+        raw = self.low_res_raw(state, uniq)
+        return raw_to_image(raw[rows, :, np.asarray(token)])

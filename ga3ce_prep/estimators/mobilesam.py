@@ -158,6 +158,9 @@ class OfficialDecoder:
     def low_res_masks(self, state: np.ndarray, index: np.ndarray) -> np.ndarray:
         return state[np.asarray(index)]
 
+    def candidate_masks(self, state: np.ndarray, prompt: np.ndarray, token: np.ndarray) -> np.ndarray:
+        return state[np.asarray(prompt), np.asarray(token)]
+
 
 # ---------------------------------------------------------------------------------------------
 # Segment everything
@@ -343,10 +346,8 @@ class MobileSamSegmenter:
             t0 = timer.add("filters", t0)
             if cand.size == 0:
                 continue
-            prompts = np.unique(cand // 3)
-            low = self.decoder.low_res_masks(state, prompts)
+            cand_low = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)   # (n, 256, 256)
             t0 = timer.add("decoder masks", t0)
-            cand_low = low[np.searchsorted(prompts, cand // 3), cand % 3 + 1]   # (n, 256, 256)
             n_candidates += len(cand)
             for c0 in range(0, len(cand), 32):                                  # bounded memory at full res
                 sl = slice(c0, c0 + 32)
