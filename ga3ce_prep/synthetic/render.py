@@ -120,17 +120,18 @@ def render_static(static: StaticScene, cam: Camera, cfg: RenderConfig) -> View:
     hit = static.cast(rays)
     t, inst = hit["t"], hit["instance"]
     ok = inst >= 0
+    sel = slice(None) if ok.all() else ok  # a closed room: every ray hits, skip the masking
     depth = np.where(ok, t, 0.0).astype(np.float32)
     rgb = np.full((H * W, 3), 0.05, np.float32)
-    ii = inst[ok].astype(np.int64)
-    d = rays[ok, 3:]
-    pts = rays[ok, :3] + d * t[ok, None]
-    rgb[ok] = shade(static.albedo[ii], hit["normal"][ok], d, pts, static.tex_dir[ii], static.tex_freq[ii],
-                    static.shiny[ii], static.room.light, cfg)
+    ii = inst[sel].astype(np.int64)
+    d = rays[sel, 3:]
+    pts = rays[sel, :3] + d * t[sel, None]
+    rgb[sel] = shade(static.albedo[ii], hit["normal"][sel], d, pts, static.tex_dir[ii], static.tex_freq[ii],
+                     static.shiny[ii], static.room.light, cfg)
     lum = np.zeros(H * W, np.float32)
-    lum[ok] = _lum(static.albedo[ii])
+    lum[sel] = _lum(static.albedo)[ii]
     shiny = np.zeros(H * W, bool)
-    shiny[ok] = static.shiny[ii]
+    shiny[sel] = static.shiny[ii]
     return View(depth.reshape(H, W), inst.reshape(H, W), rgb.reshape(H, W, 3), lum.reshape(H, W), shiny.reshape(H, W))
 
 
