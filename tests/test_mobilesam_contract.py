@@ -148,3 +148,20 @@ def test_min_mask_region_area_fills_holes(files, tmp_path):
     hole[99:105, 99:105] = True
     assert (~plain.masks[i] & hole).sum() > 0 and (~filled.masks[j] & hole).sum() == 0
     assert filled.areas[j] > plain.areas[i]
+
+
+def test_export_command_help_and_clear_errors(tmp_path, monkeypatch):
+    import sys
+
+    from click.testing import CliRunner
+
+    from ga3ce_prep.cli import cli
+    res = CliRunner().invoke(cli, ["export-mobilesam", "--help"])
+    assert res.exit_code == 0 and "--checkpoint" in res.output and "mobilesam-mirror" in res.output
+    res = CliRunner().invoke(cli, ["export-mobilesam", "--checkpoint", str(tmp_path / "nope.pt"), "--out", str(tmp_path)])
+    assert res.exit_code != 0 and "nope.pt" in res.output
+    ckpt = tmp_path / "mobile_sam.pt"
+    ckpt.write_bytes(b"not used")
+    monkeypatch.setitem(sys.modules, "mobile_sam", None)     # MobileSAM's code not installed
+    res = CliRunner().invoke(cli, ["export-mobilesam", "--checkpoint", str(ckpt), "--out", str(tmp_path / "o")])
+    assert res.exit_code != 0 and "pip install timm mobilesam-mirror" in res.output
