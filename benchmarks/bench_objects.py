@@ -84,6 +84,7 @@ def main() -> None:
         r = seg.segment(rgb)
         fast_s = time.perf_counter() - t
         row = {"fraction": frac, "pred_iou_thresh": thr, "candidates_decoded": r.n_candidates,
+               "mask_prompts": r.n_mask_prompts,
                "fast_s": round(fast_s, 3), "fast_masks": int(len(r.masks)), "fast_shares": shares(r.timings)}
         if not args.no_reference:
             t = time.perf_counter()
@@ -93,7 +94,8 @@ def main() -> None:
                        reference_shares=shares(ref.timings), ratio=round(ref_s / fast_s, 2),
                        same_masks=bool(len(ref.masks) == len(r.masks) and np.allclose(ref.scores, r.scores, atol=1e-4)))
         results.append(row)
-        line = f"{frac:>5.0%} pass (thr {thr:+.4f}, {r.n_candidates} candidates): backend {fast_s:6.2f} s"
+        line = (f"{frac:>5.0%} pass (thr {thr:+.4f}, {r.n_candidates} candidates of {r.n_mask_prompts} prompts): "
+                f"backend {fast_s:6.2f} s")
         if "reference_s" in row:
             line += f" | reference {row['reference_s']:6.2f} s | ratio {row['ratio']:5.1f}x | same masks {row['same_masks']}"
         print(line)

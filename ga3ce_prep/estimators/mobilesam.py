@@ -172,7 +172,8 @@ class Segmentation:
     masks (M, h, w) bool at the requested output resolution; scores (M,) float32 predicted IoU;
     areas (M,) int64 pixels of the returned masks; stability (M,) float32; boxes (M, 4) int64 XYXY at
     the image resolution (inclusive maxima); points (M, 2) float64 prompt pixel (x, y);
-    crop_boxes (M, 4) XYXY; timings seconds per step; n_candidates the masks decoded."""
+    crop_boxes (M, 4) XYXY; timings seconds per step; n_candidates the masks decoded (they passed the
+    IoU filter), n_mask_prompts the prompts whose masks were decoded."""
 
     masks: np.ndarray
     scores: np.ndarray
@@ -183,6 +184,7 @@ class Segmentation:
     crop_boxes: np.ndarray
     timings: dict = field(default_factory=dict)
     n_candidates: int = 0
+    n_mask_prompts: int = 0
 
 
 class _Timer:
@@ -275,6 +277,7 @@ class MobileSamSegmenter:
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
         kept: list[dict] = []
         n_candidates = 0
+        self._n_mask_prompts = 0
         for ci, (crop, layer) in enumerate(zip(boxes_c, layers)):
             res, n = self._process_crop(rgb, crop, grids[layer], img_hw, timer)
             n_candidates += n
@@ -315,7 +318,7 @@ class MobileSamSegmenter:
             boxes=np.array([r["box"] for r in kept], np.int64).reshape(n, 4),
             points=np.array([r["point"] for r in kept], np.float64).reshape(n, 2),
             crop_boxes=np.array([boxes_c[r["crop_index"]] for r in kept], np.int64).reshape(n, 4),
-            timings=dict(timer.t), n_candidates=n_candidates)
+            timings=dict(timer.t), n_candidates=n_candidates, n_mask_prompts=self._n_mask_prompts)
 
     def _process_crop(self, rgb, crop, grid, img_hw, timer) -> tuple[list[dict], int]:
         """One crop: encode, decode the grid in batches, filter; in-crop NMS. Boxes and points come
@@ -334,8 +337,9 @@ class MobileSamSegmenter:
         stab_thr = np.float32(opt.stability_score_thresh)
         kept: list[dict] = []
         n_candidates = 0
-        for b0 in range(0, len(points), opt.points_per_batch):
-            pts = coords[b0:b0 + opt.points_per_batch]
+        step = getattr(self.decoder, "batch_size", None) or opt.points_per_batch   # results do not depend on it
+        for b0 in range(0, len(points), step):
+            pts = coords[b0:b0 + step]
             batch_coords = np.stack([pts, np.zeros_like(pts)], axis=1)          # point + padding point
             batch_labels = np.tile(np.array([1.0, -1.0]), (len(pts), 1))
             t0 = time.perf_counter()
@@ -348,6 +352,7 @@ class MobileSamSegmenter:
                 continue
             cand_low = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)   # (n, 256, 256)
             t0 = timer.add("decoder masks", t0)
+            self._n_mask_prompts += len(np.unique(cand // 3))
             n_candidates += len(cand)
             for c0 in range(0, len(cand), 32):                                  # bounded memory at full res
                 sl = slice(c0, c0 + 32)
