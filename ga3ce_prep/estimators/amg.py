@@ -20,7 +20,10 @@ from ..errors import ConfigError
 
 @dataclass(frozen=True)
 class AmgOptions:
-    """segment-anything's generator options, with its defaults (the MobileSAM app uses them all)."""
+    """segment-anything's generator options, with its defaults (the MobileSAM app uses them all).
+
+    points_per_batch only sets how many prompts go to the official decoder per call; the fast
+    decoder batches its own way. Neither changes the result."""
 
     points_per_side: int = 32
     points_per_batch: int = 64
