@@ -13,6 +13,7 @@ from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, O
                                              normalise_and_pad, resize_longest_side, transform_coords)
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
+from test_pipeline_fixtures import synth_world  # noqa: F401  (fixture)
 
 
 def label_image(h=480, w=640):
@@ -165,3 +166,38 @@ def test_export_command_help_and_clear_errors(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "mobile_sam", None)     # MobileSAM's code not installed
     res = CliRunner().invoke(cli, ["export-mobilesam", "--checkpoint", str(ckpt), "--out", str(tmp_path / "o")])
     assert res.exit_code != 0 and "pip install timm mobilesam-mirror" in res.output
+
+
+def test_iou_filter_is_strict(files):
+    rgb = np.full((480, 640, 3), 128, np.uint8)
+    seg = MobileSamSegmenter(files["enc"], files["dec"], AmgOptions(points_per_side=8, pred_iou_thresh=0.97),
+                             decoder_mode="official")
+    assert len(seg.segment(rgb).masks) == 0          # 0.97 > 0.97 is false (float32, as the reference)
+    seg.options = AmgOptions(points_per_side=8, pred_iou_thresh=0.969)
+    assert len(seg.segment(rgb).masks) == 3
+
+
+def test_scripted_decoder_on_the_synthetic_worlds_instance_masks(synth_world, tmp_path):
+    """The whole generator on a synthetic frame, with masks that mean something: the decoder's masks
+    are the world's exact instance masks, so segment-everything must return them."""
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.frames import load_rgb
+    from ga3ce_prep.stages.truth import truth_record
+
+    frame = next(iter(open_dataset("gfie", synth_world)))
+    inst = np.asarray(truth_record(synth_world / "truth.h5", frame.id).instance).astype(np.int32) + 1  # 0 = none
+    path = tmp_path / "dec_world.onnx"
+    onnx.save(scripted.scripted_decoder(inst), path)
+    enc = tmp_path / "enc.onnx"
+    onnx.save(scripted.pooling_encoder("normalised"), enc)
+    rgb = load_rgb(frame.image_path)
+    r = MobileSamSegmenter(enc, path, AmgOptions(points_per_side=24), decoder_mode="official").segment(rgb)
+    ids, areas = np.unique(inst[inst > 0], return_counts=True)
+    big = set(ids[areas >= 0.02 * inst.size].tolist())
+    matched = set()
+    for m in r.masks:
+        k = np.bincount(inst[m]).argmax()
+        truth = inst == k
+        assert (m & truth).sum() / (m | truth).sum() > 0.9
+        matched.add(int(k))
+    assert len(big) >= 3 and big <= matched
