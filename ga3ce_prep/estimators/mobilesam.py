@@ -224,10 +224,18 @@ class MobileSamSegmenter:
         self.official = OfficialDecoder(decoder, self.providers, threads)
         self.decoder_mode = decoder_mode
         self._lock = threading.Lock()   # the decoders keep the current image: one segment() at a time
+        self._pool = None
         if decoder_mode == "fast":
+            from concurrent.futures import ThreadPoolExecutor
+
             from .fast_decoder import FastDecoder
 
-            self.decoder = FastDecoder(decoder, self.providers, threads)
+            # CPU: `threads` batches at once on 1-thread sessions (less synchronisation than one
+            # batch on `threads` threads); other providers: one batch at a time
+            parallel = threads > 1 and self.providers[0] == "CPUExecutionProvider"
+            self.decoder = FastDecoder(decoder, self.providers, 1 if parallel else threads)
+            if parallel:
+                self._pool = ThreadPoolExecutor(threads, thread_name_prefix="mobilesam")
             if verify:
                 self.verify()
         else:
@@ -333,44 +341,22 @@ class MobileSamSegmenter:
         t0 = timer.add("decoder image", t0)
         points = grid * np.array([crop_hw[1], crop_hw[0]], np.float64)       # crop pixels (x, y)
         coords = transform_coords(points, crop_hw)
-        iou_thr = np.float32(opt.pred_iou_thresh)
-        stab_thr = np.float32(opt.stability_score_thresh)
+        step = getattr(self.decoder, "batch_size", None) or opt.points_per_batch   # results do not depend on it
+        starts = range(0, len(points), step)
+        if self._pool is None:
+            parts = [self._decode_batch(coords[b0:b0 + step], points[b0:b0 + step], crop, crop_hw, img_hw)
+                     for b0 in starts]
+        else:   # batches in parallel (1-thread sessions), results in batch order
+            parts = list(self._pool.map(lambda b0: self._decode_batch(coords[b0:b0 + step], points[b0:b0 + step],
+                                                                      crop, crop_hw, img_hw), starts))
         kept: list[dict] = []
         n_candidates = 0
-        step = getattr(self.decoder, "batch_size", None) or opt.points_per_batch   # results do not depend on it
-        for b0 in range(0, len(points), step):
-            pts = coords[b0:b0 + step]
-            batch_coords = np.stack([pts, np.zeros_like(pts)], axis=1)          # point + padding point
-            batch_labels = np.tile(np.array([1.0, -1.0]), (len(pts), 1))
-            t0 = time.perf_counter()
-            iou, state = self.decoder.predict_iou(batch_coords, batch_labels)
-            t0 = timer.add("decoder iou", t0)
-            cand_iou = iou[:, 1:4].reshape(-1).astype(np.float32)               # point-major, 3 per point
-            cand = np.flatnonzero(cand_iou > iou_thr) if opt.pred_iou_thresh > 0 else np.arange(cand_iou.size)
-            t0 = timer.add("filters", t0)
-            if cand.size == 0:
-                continue
-            cand_low = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)   # (n, 256, 256)
-            t0 = timer.add("decoder masks", t0)
-            self._n_mask_prompts += len(np.unique(cand // 3))
-            n_candidates += len(cand)
-            for c0 in range(0, len(cand), 32):                                  # bounded memory at full res
-                sl = slice(c0, c0 + 32)
-                t0 = time.perf_counter()
-                logits = amg.upscale_logits(cand_low[sl], crop_hw)
-                t0 = timer.add("upscale", t0)
-                stab = amg.stability_score(logits, opt.stability_score_offset)
-                ok = stab >= stab_thr if opt.stability_score_thresh > 0 else np.ones(len(stab), bool)
-                masks = logits[ok] > 0.0
-                boxes = amg.masks_to_boxes(masks)
-                edge = amg.near_crop_edge(boxes, crop, [0, 0, img_hw[1], img_hw[0]])
-                idx = np.flatnonzero(ok)[~edge]
-                areas = masks[~edge].sum(axis=(1, 2))
-                for j, box, area in zip(idx, boxes[~edge], areas):
-                    c = cand[c0 + j]
-                    kept.append({"iou": float(cand_iou[c]), "stability": float(stab[j]), "box": box,
-                                 "area": int(area), "point": points[b0 + c // 3], "low_res": cand_low[c0 + j].copy()})
-                t0 = timer.add("filters", t0)
+        for res, n_cand, n_prompts, times in parts:
+            kept += res
+            n_candidates += n_cand
+            self._n_mask_prompts += n_prompts
+            for k, v in times.items():
+                timer.t[k] += v
         t0 = time.perf_counter()
         if kept:
             order = amg.box_nms(np.array([r["box"] for r in kept]), np.array([r["iou"] for r in kept], np.float32),
@@ -382,6 +368,45 @@ class MobileSamSegmenter:
                 r["point"] = r["point"] + np.array([x0, y0])
         timer.add("nms", t0)
         return kept, n_candidates
+
+    def _decode_batch(self, coords, points, crop, crop_hw, img_hw):
+        """One batch of grid points (1024 frame, crop pixels): predicted IoUs, then masks only for
+        the candidates that pass, filtered at the crop's resolution. Returns (kept candidates,
+        n candidates, n prompts decoded, seconds per step)."""
+        opt = self.options
+        timer = _Timer()
+        iou_thr = np.float32(opt.pred_iou_thresh)
+        stab_thr = np.float32(opt.stability_score_thresh)
+        batch_coords = np.stack([coords, np.zeros_like(coords)], axis=1)          # point + padding point
+        batch_labels = np.tile(np.array([1.0, -1.0]), (len(coords), 1))
+        t0 = time.perf_counter()
+        iou, state = self.decoder.predict_iou(batch_coords, batch_labels)
+        t0 = timer.add("decoder iou", t0)
+        cand_iou = iou[:, 1:4].reshape(-1).astype(np.float32)                     # point-major, 3 per point
+        cand = np.flatnonzero(cand_iou > iou_thr) if opt.pred_iou_thresh > 0 else np.arange(cand_iou.size)
+        t0 = timer.add("filters", t0)
+        kept: list[dict] = []
+        if cand.size == 0:
+            return kept, 0, 0, timer.t
+        cand_low = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)   # (n, 256, 256)
+        del state
+        t0 = timer.add("decoder masks", t0)
+        for c0 in range(0, len(cand), 32):                                        # bounded memory at full res
+            sl = slice(c0, c0 + 32)
+            logits = amg.upscale_logits(cand_low[sl], crop_hw)
+            t0 = timer.add("upscale", t0)
+            stab = amg.stability_score(logits, opt.stability_score_offset)
+            ok = stab >= stab_thr if opt.stability_score_thresh > 0 else np.ones(len(stab), bool)
+            masks = logits[ok] > 0.0
+            boxes = amg.masks_to_boxes(masks)
+            edge = amg.near_crop_edge(boxes, crop, [0, 0, img_hw[1], img_hw[0]])
+            idx = np.flatnonzero(ok)[~edge]
+            for j, box in zip(idx, boxes[~edge]):
+                c = cand[c0 + j]
+                kept.append({"iou": float(cand_iou[c]), "stability": float(stab[j]), "box": box,
+                             "point": points[c // 3], "low_res": cand_low[c0 + j].copy()})
+            t0 = timer.add("filters", t0)
+        return kept, len(cand), len(np.unique(cand // 3)), timer.t
 
     def _small_regions(self, kept, boxes_c, img_hw, timer):
         """min_mask_region_area: fill small holes, drop small islands (image resolution); changed masks
