@@ -72,6 +72,7 @@ class GazeConfig:
     max_target_yaw: float = 110.0                # targets within this yaw of the person's heading (deg)
     head_follow: tuple[float, float] = (0.15, 0.5)  # share of the torso-to-gaze angle the head turns
     eye_offset_max: float = 25.0                 # eye-in-head offset cap (deg): the head catches up beyond it
+    eye_offset_cap_spread: float = 0.4           # per fixation the cap is eye_offset_max * U(1 - spread, 1)
     head_jitter: float = 3.0                     # random head direction error, std per axis (deg)
     body_follow: tuple[float, float] = (0.1, 0.5)  # share of the heading-to-gaze yaw the torso turns
     max_torso_twist: float = 45.0                # walking: torso yaw relative to the pelvis (deg)

@@ -39,6 +39,7 @@ class Fixation:
     body_follow: float
     jitter: np.ndarray           # (3,) head error rotation vector (rad)
     reach_side: int              # -1 none, 0 left, 1 right
+    eye_cap: float               # this fixation's eye-in-head offset cap (rad)
 
 
 @dataclass
@@ -192,8 +193,9 @@ class Scene:
             side = gz.wrap(np.arctan2(d[1], d[0]) - heading)
             reach = 0 if side > 0 else 1  # the arm on the target's side (y is left)
         jitter = np.radians(g.head_jitter) * rng.normal(size=3)
+        cap = np.radians(g.eye_offset_max) * float(rng.uniform(1.0 - g.eye_offset_cap_spread, 1.0))
         return Fixation(t, t + dwell, target, float(rng.uniform(*g.head_follow)), float(rng.uniform(*g.body_follow)),
-                        jitter, reach)
+                        jitter, reach, cap)
 
     def steps(self, n: int) -> Iterator[Step]:
         """The person's n time steps, rendered by every camera."""
@@ -237,7 +239,7 @@ class Scene:
                     off = gz.wrap(np.arctan2(d[1], d[0]) - heading)
                     if posture == "standing" and abs(off) > np.radians(60):  # turn round to it
                         heading = gz.wrap(heading + off - np.sign(off) * np.radians(rng.uniform(0, 40)))
-                cap = np.radians(g.eye_offset_max + 0.5)
+                cap = fix.eye_cap + np.radians(0.5)
                 sol = self._solve(fix, root_xy, eye_est, heading, posture, phase, seat_h, prev_yaw, prev_head,
                                   a_head, a_body)
                 if gz.angle(sol[3], sol[4]) > cap and prev_yaw is not None:
@@ -291,7 +293,7 @@ class Scene:
         for _ in range(3):  # the eye moves with the head: iterate to a fixed point
             eye = joints[list(EYES)].mean(axis=0)
             gaze = gz.unit(target - eye)
-            h = gz.head_direction(gaze, torso_fwd, fix.head_follow, np.radians(g.eye_offset_max), fix.jitter,
+            h = gz.head_direction(gaze, torso_fwd, fix.head_follow, fix.eye_cap, fix.jitter,
                                   prev_head, a_head if prev_head is not None else 1.0)
             set_head(body, L, G[9], head_frame(h))
             joints, G = forward_kinematics(body, root, yaw, L)
