@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import warnings
 from contextlib import ExitStack
 from typing import Any
 
@@ -113,9 +114,11 @@ def _execute_distributed(dsk: dict, keys: list, bars: _Bars, workers: int | None
         if scheduler:
             client = stack.enter_context(Client(scheduler))
         else:
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
-                silence_logs=logging.ERROR))
+            with warnings.catch_warnings():  # "port 8787 in use" for the (unused) HTTP server
+                warnings.simplefilter("ignore")
+                cluster = stack.enter_context(LocalCluster(
+                    n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
+                    silence_logs=logging.ERROR))
             client = stack.enter_context(Client(cluster))
         if workers:
             client.wait_for_workers(int(workers))

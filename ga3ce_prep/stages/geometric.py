@@ -42,7 +42,7 @@ class GeometricParams:
     stride: int = 4
     max_planes: int = 4
     plane_distance: float = 0.03
-    plane_band: float = 0.06
+    plane_band: float = 0.04
     band_frac: float = 0.7
     noise_ref_depth: float = 2.5
     smooth: int = 5
@@ -51,8 +51,8 @@ class GeometricParams:
     min_plane_frac: float = 0.08
     keep_planes: bool = True
     cluster_eps: float = 0.06
-    cluster_min_points: int = 8
-    min_segment_points: int = 12
+    cluster_min_points: int = 5
+    min_segment_points: int = 6
     depth_tol: float = 0.05
     drop_subject: bool = True
     max_range: float = 8.0
