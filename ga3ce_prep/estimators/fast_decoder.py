@@ -241,20 +241,20 @@ def build_image_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     outs = {}
     outs["K0T"] = heads_dp(g.linear(src_pe, w[L0 + ".k_proj.w"], w[L0 + ".k_proj.b"]))
     outs["V0"] = heads_pd(g.linear(src, w[L0 + ".v_proj.w"], w[L0 + ".v_proj.b"]))
-    outs["Qi0"] = heads_pd(g.linear(src_pe, w[I0 + ".q_proj.w"], w[I0 + ".q_proj.b"]))
+    outs["Qi0T"] = heads_dp(g.linear(src_pe, w[I0 + ".q_proj.w"], w[I0 + ".q_proj.b"]))
     s = g.add(src, g.const(w[I0 + ".out_proj.b"]))
     s_c = g.sub(s, g.op("ReduceMean", s, axes=[-1], keepdims=1))                   # s~ (P, C)
-    outs["Sx0"] = heads_pd(g.mm(s_c, g.const(d.wo0.T)))
+    outs["Sx0T"] = heads_dp(g.mm(s_c, g.const(d.wo0.T)))
     outs["ssq"] = g.reduce_sum(g.mul(s_c, s_c), [-1])                                  # (P, 1)
     sg = g.mul(s_c, g.const(d.g1))
     L1 = "layers.1.cross_attn_token_to_image"
     I1 = "layers.1.cross_attn_image_to_token"
     outs["SK1T"] = heads_dp(g.mm(sg, g.const(w[L1 + ".k_proj.w"])))
     outs["SV1"] = heads_pd(g.mm(sg, g.const(w[L1 + ".v_proj.w"])))
-    outs["SQ1"] = heads_pd(g.mm(sg, g.const(w[I1 + ".q_proj.w"])))
+    outs["SQ1T"] = heads_dp(g.mm(sg, g.const(w[I1 + ".q_proj.w"])))
     s2 = g.sub(sg, g.op("ReduceMean", sg, axes=[-1], keepdims=1))                     # S2 (P, C)
-    outs["Sy0"] = heads_pd(g.mm(s2, g.const(d.wn0.T)))
-    outs["Sy1"] = heads_pd(g.mm(s2, g.const(d.wo1.T)))
+    outs["Sy0T"] = heads_dp(g.mm(s2, g.const(d.wn0.T)))
+    outs["Sy1T"] = heads_dp(g.mm(s2, g.const(d.wo1.T)))
     outs["S2sq"] = g.reduce_sum(g.mul(s2, s2), [-1])
     outs["S2b"] = g.mm(s2, g.const(d.beta_c.reshape(C, 1)))
     s2g = g.mul(s2, g.const(d.g2))
@@ -266,7 +266,7 @@ def build_image_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     return g.model()
 
 
-IMAGE_OUTPUTS = ("K0T", "V0", "Qi0", "Sx0", "ssq", "SK1T", "SV1", "SQ1", "Sy0", "Sy1", "S2sq", "S2b",
+IMAGE_OUTPUTS = ("K0T", "V0", "Qi0T", "Sx0T", "ssq", "SK1T", "SV1", "SQ1T", "Sy0T", "Sy1T", "S2sq", "S2b",
                  "SKfT", "SVf", "SC")
 TOKEN_IMAGE_INPUTS = IMAGE_OUTPUTS[:-1]          # all but SC
 STATE = ("A0c", "A1c", "r1", "r2", "Vt0", "Vt1", "hyper_in")
@@ -311,17 +311,21 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     def dyn(*parts):
         return g.concat([p if isinstance(p, str) else g.const(p, dtype=np.int64) for p in parts], axis=0)
 
-    def to_cat(a):      # (B, H, P, T) -> (B, P, H*T)
-        return g.reshape(g.transpose(a, [0, 2, 1, 3]), [0, 0, -1])
-
-    def to_catT(a):     # (B, H, P, T) -> (B, H*T, P)
-        return g.reshape(g.transpose(a, [0, 1, 3, 2]), [0, -1, P])
-
     def rowdot(a, b):   # sum over last axis, keepdims -> (B, P, 1)
         return g.reduce_sum(g.mul(a, b), [-1])
 
-    def headdot(a, b):  # (B, H, P, T) x (B, H, P, T) summed over heads and tokens -> (B, P, 1)
-        return g.reshape(g.reduce_sum(g.mul(a, b), [1, 3]), [0, P, 1])
+    def headdot(a, b):  # (B, H, T, P) x (B, H, T, P) summed over heads and tokens -> (B, P, 1)
+        return g.reshape(g.reduce_sum(g.mul(a, b), [1, 2]), [0, P, 1])
+
+    def softmax_tokens(x):  # (B, H, T, P) logits -> softmax over T (axis 2), vectorised along P
+        e = g.op("Exp", g.sub(x, g.op("ReduceMax", x, axes=[2], keepdims=1)))
+        return g.div(e, g.reduce_sum(e, [2]))
+
+    def cat_of(a):      # (B, H, T, P) -> (B, P, H*T)
+        return g.reshape(g.transpose(a, [0, 3, 1, 2]), [0, P, -1])
+
+    def catT_of(a):     # (B, H, T, P) -> (B, H*T, P), free
+        return g.reshape(a, [0, -1, P])
 
     def ln(x, key):
         return g.layer_norm(x, w[key + ".g"], w[key + ".b"], eps)
@@ -341,9 +345,6 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     def q_heads(x, key, scale=0.25):  # (B, T, C) -> (B, H, T, D), pre-scaled by 1/sqrt(D)
         return _split_heads(g, g.linear(x, w[key + ".w"] * scale, w[key + ".b"] * scale), [0, 2, 1, 3])
 
-    def k_heads_T(x, key, scale=0.25):  # (B, T, C) -> (B, H, D, T)
-        return _split_heads(g, g.linear(x, w[key + ".w"] * scale, w[key + ".b"] * scale), [0, 2, 3, 1])
-
     def per_head_right(vt_h, mat):  # (B, H, T, D) @ (H, D, k) -> (B, H*T, k)
         return g.reshape(g.mm(vt_h, g.const(mat)), [0, -1, mat.shape[-1]])
 
@@ -359,15 +360,14 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     queries = ln(g.add(queries, g.linear(o, w[L0 + ".out_proj.w"], w[L0 + ".out_proj.b"])), "layers.0.norm2")
     queries = ln(g.add(queries, mlp(queries, "layers.0.mlp")), "layers.0.norm3")
     I0 = "layers.0.cross_attn_image_to_token"
-    kt0 = k_heads_T(g.add(queries, tokens), I0 + ".k_proj")                         # (B, H, D, T)
+    kt0 = q_heads(g.add(queries, tokens), I0 + ".k_proj")                           # (B, H, T, D) / 4
     vt0 = g.linear(queries, w[I0 + ".v_proj.w"], w[I0 + ".v_proj.b"])                # (B, T, 128)
-    a0 = g.softmax(g.mm(img["Qi0"], kt0))                                           # (B, H, P, T)
-    a0c, a0cT = to_cat(a0), to_catT(a0)
+    a0 = softmax_tokens(g.mm(kt0, img["Qi0T"]))                                     # (B, H, T, P)
+    a0c, a0cT = cat_of(a0), catT_of(a0)
     vt0h = _split_heads(g, vt0, [0, 2, 1, 3])                                       # (B, H, T, D)
-    vt0hT = g.transpose(vt0h, [0, 1, 3, 2])                                         # (B, H, D, T)
     m0 = per_head_right(vt0h, _heads_rows(d.wo0))                                   # M~0 (B, HT, C)
     g0 = g.mm(m0, g.transpose(m0, [0, 2, 1]))
-    dx0 = g.mm(img["Sx0"], vt0hT)                                                   # s~ M~0^T (B, H, P, T)
+    dx0 = g.mm(vt0h, img["Sx0T"])                                                   # (s~ M~0^T)^T (B, H, T, P)
     var1 = g.add(g.add(img["ssq"], g.mul(g.const(2.0), headdot(a0, dx0))), rowdot(a0c, g.mm(a0c, g0)))
     r1 = g.op("Reciprocal", g.op("Sqrt", g.add(g.div(var1, g.const(float(C))), g.const(eps))))  # (B, P, 1)
 
@@ -392,26 +392,24 @@ def build_token_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
                  "layers.1.norm2")
     queries = ln(g.add(queries, mlp(queries, "layers.1.mlp")), "layers.1.norm3")
     I1 = "layers.1.cross_attn_image_to_token"
-    kt1 = k_heads_T(g.add(queries, tokens), I1 + ".k_proj")                         # (B, H, D, T)
+    kt1 = q_heads(g.add(queries, tokens), I1 + ".k_proj")                           # (B, H, T, D) / 4
     vt1 = g.linear(queries, w[I1 + ".v_proj.w"], w[I1 + ".v_proj.b"])
-    rq1 = _split_heads(g, g.mm(m0, g.const(g1w * w[I1 + ".q_proj.w"])), [0, 2, 1, 3])  # (B, H, HT, D)
-    z = g.reshape(g.transpose(g.mm(rq1, kt1), [0, 2, 1, 3]), [0, 0, -1])           # (B, HT, H*T)
-    az = g.transpose(g.reshape(g.mm(a0c, z), [0, 0, H, -1]), [0, 2, 1, 3])         # (B, H, P, T)
+    rq1 = _split_heads(g, g.mm(m0, g.const(g1w * w[I1 + ".q_proj.w"])), [0, 2, 3, 1])  # (B, H, D, HT)
+    zt = g.reshape(g.mm(kt1, rq1), dyn([0, -1], ht))                                # (B, H*T, HT)
+    az = g.reshape(g.mm(zt, a0cT), [0, H, -1, P])                                   # (B, H, T, P)
     cq1 = (d.pe + d.w["layers.0.norm4.b"][None]) @ w[I1 + ".q_proj.w"] + w[I1 + ".q_proj.b"]
-    r_col = g.reshape(r1, [0, 1, P, 1])
-    l1 = g.add(g.mul(r_col, g.add(g.mm(img["SQ1"], kt1), az)),
-               g.mm(g.const(cq1.reshape(P, H, D).transpose(1, 0, 2)), kt1))
-    a1 = g.softmax(l1)
-    a1c, a1cT = to_cat(a1), to_catT(a1)
+    l1 = g.add(g.mul(r_row(r1), g.add(g.mm(kt1, img["SQ1T"]), az)),
+               g.mm(kt1, g.const(cq1.reshape(P, H, D).transpose(1, 2, 0))))
+    a1 = softmax_tokens(l1)                                                         # (B, H, T, P)
+    a1c, a1cT = cat_of(a1), catT_of(a1)
 
     # ---- LayerNorm statistics of the image stream after layer 1 -------------------------------
     vt1h = _split_heads(g, vt1, [0, 2, 1, 3])
-    vt1hT = g.transpose(vt1h, [0, 1, 3, 2])
     n0 = per_head_right(vt0h, _heads_rows(d.wn0))                                   # N0 (B, HT, C)
     m1 = per_head_right(vt1h, _heads_rows(d.wo1))                                   # M~1 (B, HT, C)
     n0T, m1T = g.transpose(n0, [0, 2, 1]), g.transpose(m1, [0, 2, 1])
-    d0 = g.mm(img["Sy0"], vt0hT)                                                    # (B, H, P, T)
-    d1 = g.mm(img["Sy1"], vt1hT)
+    d0 = g.mm(vt0h, img["Sy0T"])                                                    # (B, H, T, P)
+    d1 = g.mm(vt1h, img["Sy1T"])
     beta = g.const(d.beta_c.reshape(C, 1))
     a0g = g.mm(a0c, g.concat([g.mm(n0, n0T), g.mm(n0, m1T), g.mm(n0, beta)], axis=-1))   # (B, P, 2HT + 1)
     a0g00 = g.op("Slice", a0g, g.const([0], dtype=np.int64), ht, g.const([2], dtype=np.int64))
@@ -500,11 +498,7 @@ def build_mask_graph(w: dict[str, np.ndarray]) -> onnx.ModelProto:
     y = g.reshape(y, [0, P, 4, 64])
     y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))
     w2 = w["up3.w"].transpose(0, 2, 3, 1).reshape(64, 4 * 32)                      # cols (kh2, kw2, o2)
-    # the bias as a 65th input channel: a separate bias Add would be fused with the GELU into ONNX
-    # Runtime's BiasGelu, whose CPU kernel is several times slower than its Gelu
-    ones = g.add(g.mul(g.slice(y, [0], [1], [3]), g.const(0.0)), g.const(1.0))
-    w2b = np.concatenate([w2, np.tile(w["up3.b"], 4)[None]], axis=0)                # (65, 128)
-    z = g.gelu(g.mm(g.concat([y, ones], axis=3), g.const(w2b)))                     # (K, P, 4, 128)
+    z = g.gelu(g.add(g.mm(y, g.const(w2)), g.const(np.tile(w["up3.b"], 4))))       # (K, P, 4, 128)
     z = g.reshape(z, [0, P * 16, 32])
     g.output(g.mm(z, g.transpose(st["hyper_in"], [0, 2, 1])), "low_res_raw")   # (K, P*16, 4)
     return g.model()
