@@ -192,14 +192,21 @@ def upscale_logits(low_res: np.ndarray, orig_hw: tuple[int, int], out_hw: tuple[
                    img_size: int = 1024) -> np.ndarray:
     """The decoder's mask postprocessing on (n, 256, 256) logits: bilinear (half-pixel, no
     antialiasing) to img_size x img_size, crop to the resized image (newh, neww) of `orig_hw`, bilinear
-    to `out_hw` (default orig_hw). Returns (n, out_h, out_w) float32 logits.
+    to `out_hw` (default orig_hw). Returns (n, out_h, out_w) float32 logits. OpenCV's bilinear weights
+    are float32: within 1e-4 of torch's F.interpolate.
 
     With out_hw smaller than orig_hw this is the decoder's `orig_im_size` trick: the masks come
     directly at the depth map's resolution."""
     newh, neww = preprocess_shape(*orig_hw, img_size)
     out_h, out_w = out_hw or orig_hw
+    n_low = low_res.shape[-1]
+    f = img_size // n_low                                   # 4
+    # upsample only the low-res rows/columns the crop reads (+1 for the interpolation's second tap):
+    # same scale, same coordinates, so the same values inside the crop
+    rh, rw = min(n_low, -(-newh // f) + 1), min(n_low, -(-neww // f) + 1)
     out = np.empty((low_res.shape[0], out_h, out_w), np.float32)
     for i, m in enumerate(low_res):
-        up = cv2.resize(np.ascontiguousarray(m, np.float32), (img_size, img_size), interpolation=cv2.INTER_LINEAR)
+        part = np.ascontiguousarray(m[:rh, :rw], np.float32)
+        up = cv2.resize(part, (rw * f, rh * f), interpolation=cv2.INTER_LINEAR)
         out[i] = cv2.resize(up[:newh, :neww], (out_w, out_h), interpolation=cv2.INTER_LINEAR)
     return out
