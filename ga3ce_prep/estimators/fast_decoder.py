@@ -522,7 +522,7 @@ class FastDecoder:
     decoder_path: the official decoder ONNX (its weights are read from it). providers: execution
     providers in preference order (see onnx_runtime.resolve_providers)."""
 
-    batch_size = 16   # prompts per token-graph call: its per-prompt tensors then stay in the CPU caches
+    batch_size = 8   # prompts per token-graph call: its per-prompt tensors then stay in the CPU caches
 
     def __init__(self, decoder_path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
         from .onnx_runtime import create_session
