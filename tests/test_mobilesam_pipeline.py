@@ -7,7 +7,7 @@ from ga3ce_prep.cli import cli
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.estimators.amg import AmgOptions
 from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
-from ga3ce_prep.frames import load_depth, load_rgb
+from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.geometry import object_positions
 from ga3ce_prep.store import open_store
 from test_mobilesam_models import DEC, ENC
