@@ -232,5 +232,16 @@ def synth_world(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def synth_world_640(tmp_path_factory) -> Path:
+    """A 640x480 synthetic GFIE-format world (4 scenes x 2 frames), the benchmark's resolution,
+    where heads span 15-40 px (at 160x120 a head is 5-8 px and its window 3x3)."""
+    from ga3ce_prep.synthetic.generate import generate
+
+    root = tmp_path_factory.mktemp("synth640") / "gfie"
+    generate("gfie", root, scenes=4, frames_per_scene=2, seed=6, width=640, progress=False)
+    return root
+
+
 # the bundled pipelines, with the geometric segmenter's grid scaled to 160x120 frames
 SMALL = ["stages.objects.params.stride=1"]
