@@ -1,5 +1,4 @@
 """Pipeline files: schema validation naming the key, defaults, files checked before any work."""
-from pathlib import Path
 
 import numpy as np
 import pytest

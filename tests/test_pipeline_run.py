@@ -255,7 +255,6 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
     res = r.invoke(cli, ["info", str(out)])
     assert res.exit_code == 0, res.output
     assert "frames       12" in res.output and "splits" in res.output and "[ORACLE" in res.output
-    assert "objects per frame" not in res.output or True
     fid = open_store(out).frames["id"][0]
     png = tmp_path / "f.png"
     res = r.invoke(cli, ["show", str(out), fid, "--out", str(png)])

@@ -12,7 +12,6 @@ to make later runs with changed parameters recompute only what changed, or delet
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

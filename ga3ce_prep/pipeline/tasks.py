@@ -243,8 +243,8 @@ def stage_task(env: TaskEnv, stage: str, shard: Shard, _upstream: Any = None) ->
     t0 = time.perf_counter()
     ok_in = _load_ok(cache, "input", shard)
     b = backend(env, stage)
-    fn, shape = {"pose": (b.pose if stage == "pose" else None, (N_JOINTS, 3)),
-                 "view": (b.view if stage == "view" else None, (3,))}[stage]
+    fn = getattr(b, stage)  # PoseBackend.pose or ViewBackend.view
+    shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
     n = len(shard.frames)
     out = np.full((n, *shape), np.nan, np.float32)
     ok = np.zeros(n, bool)
