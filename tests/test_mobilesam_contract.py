@@ -191,7 +191,7 @@ def test_scripted_decoder_on_the_synthetic_worlds_instance_masks(synth_world, tm
     enc = tmp_path / "enc.onnx"
     onnx.save(scripted.pooling_encoder("normalised"), enc)
     rgb = load_rgb(frame.image_path)
-    r = MobileSamSegmenter(enc, path, AmgOptions(points_per_side=24), decoder_mode="official").segment(rgb)
+    r = MobileSamSegmenter(enc, path, AmgOptions(points_per_side=16), decoder_mode="official").segment(rgb)
     ids, areas = np.unique(inst[inst > 0], return_counts=True)
     big = set(ids[areas >= 0.02 * inst.size].tolist())
     matched = set()
