@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..errors import FrameError, ModelFileError
+from ..errors import ConfigError, FrameError, ModelFileError
 from . import amg
 from .onnx_runtime import (TensorSpec, check_contract, create_session, file_sha256, input_dims,
                            resolve_providers)
@@ -228,7 +228,11 @@ class MobileSamSegmenter:
         if decoder_mode == "fast":
             from concurrent.futures import ThreadPoolExecutor
 
-            from .fast_decoder import FastDecoder
+            try:
+                from .fast_decoder import FastDecoder
+            except ImportError as e:   # the fast decoder reads and writes ONNX graphs with the onnx package
+                raise ConfigError(f"decoder_mode 'fast' needs the onnx package ({e}): pip install onnx, "
+                                  "or use decoder_mode 'official'") from e
 
             # CPU: `threads` batches at once on 1-thread sessions (less synchronisation than one
             # batch on `threads` threads); other providers: one batch at a time
