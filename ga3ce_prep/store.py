@@ -137,7 +137,7 @@ class StoreWriter:
         counts = np.asarray(frames["obj_count"], np.int64)
         m = int(counts.sum())
         frames = dict(frames)
-        frames["obj_start"] = self.n_objects + np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        frames["obj_start"] = self.n_objects + np.concatenate([[0], np.cumsum(counts)])[:n].astype(np.int64)
         missing = set(FRAME_ARRAYS) - set(frames)
         if missing:
             raise ValueError(f"frames block lacks {sorted(missing)}")

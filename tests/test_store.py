@@ -63,3 +63,17 @@ def test_store_attrs_validated(tmp_path):
 def test_missing_store_message(tmp_path):
     with pytest.raises(StoreError, match="ga3ce-prep run"):
         open_store(tmp_path / "nope.zarr")
+
+
+def test_empty_blocks_are_accepted(tmp_path):
+    rng = np.random.default_rng(1)
+    w = StoreWriter(tmp_path / "s.zarr")
+    empty_f, empty_o = _block(rng, 0, 0)
+    w.append_frames(empty_f, empty_o)
+    f, o = _block(rng, 3, 0)
+    w.append_frames(f, o)
+    w.append_frames(empty_f, empty_o)
+    w.close(ATTRS)
+    s = open_store(tmp_path / "s.zarr")
+    assert len(s) == 3
+    np.testing.assert_array_equal(s.frames["obj_start"], np.concatenate([[0], np.cumsum(f["obj_count"])[:-1]]))

@@ -153,8 +153,7 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
         frames, objects, fails = shard_block(shard, _entries(cache, shard), counts)
         frames["split"] = np.array([_split_code(s) for s in frames["split"]], np.int8)
         frames["scene"] = np.array([writer.scene_code(s) for s in frames["scene"]], np.int32)
-        if len(frames["id"]):  # (StoreWriter.append_frames does not take an empty block)
-            writer.append_frames(frames, objects)
+        writer.append_frames(frames, objects)
         if fails:
             cols = list(zip(*fails))
             writer.append_failures({k: np.array(v, dtype=str) for k, v in
