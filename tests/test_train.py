@@ -52,7 +52,7 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
     assert len(hist) == 3 and hist[0].startswith("epoch,step,lr,train_loss,train_mae,val_mae")
     assert (a / "curves.png").stat().st_size > 1000 and (a / "best.pt").exists()
     cfg = json.loads((a / "config.json").read_text())
-    assert cfg["view_noise_resolved"] is True and cfg["lr"] == 1.4e-3
+    assert cfg["view_noise_resolved"] is True and cfg["lr"] == 3e-4
 
 
 def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
@@ -62,7 +62,7 @@ def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
     assert "optimizer" not in torch.load(run / "best.pt", weights_only=True)
     with pytest.raises(CheckpointError, match="--resume"):
         train(_cfg(store, tmp_path / "r", epochs=1))
-    with pytest.raises(CheckpointError, match="lr: checkpoint 0.0014, now 0.001"):
+    with pytest.raises(CheckpointError, match="lr: checkpoint 0.0003, now 0.001"):
         train(_cfg(store, tmp_path / "r", epochs=1, lr=1e-3), resume=True)
     other = write_toy_store(tmp_path / "other.zarr", 120, seed=9)
     with pytest.raises(CheckpointError, match="store fingerprint"):
