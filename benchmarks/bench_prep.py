@@ -226,7 +226,7 @@ def main(frames, json_out, memory_child):
         print("3/5 geometric recall vs truth masks ...", flush=True)
         res["recall"] = recall(data, base, 4 * frames)
         print("4/5 1 vs 2 dask workers ...", flush=True)
-        res["workers"] = workers_scaling(data, base, 2 * frames)
+        res["workers"] = workers_scaling(data, base, 4 * frames)
         print("5/5 peak memory, 1x and 4x frames ...", flush=True)
         res["memory"] = memory(data, base, frames)
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,7 @@ def _done(t0: float) -> None:
 @click.command()
 @click.option("--out", default="out", show_default=True, type=click.Path(file_okay=False),
               help="Folder for the dataset, the store and the run.")
-@click.option("--scenes", default=24, show_default=True, help="Synthetic scenes (rooms); splits are by scene.")
+@click.option("--scenes", default=48, show_default=True, help="Synthetic scenes (rooms); splits are by scene.")
 @click.option("--frames-per-scene", default=60, show_default=True, help="Frames per scene.")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the paper's recipe otherwise).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the world and of training.")

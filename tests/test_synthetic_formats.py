@@ -157,7 +157,7 @@ def test_gafa_layout_pickles_and_cameras(datasets):
 def test_truth_layout(datasets):
     root = datasets["gfie"]
     with h5py.File(root / "truth.h5", "r") as f:
-        assert f["depth"].chunks == (1, H, W) and f["depth"].compression == "gzip"
+        assert f["depth"].chunks == (1, H, W) and f["depth"].compression == "lzf"
         assert f["instance"].dtype == np.int16 and f["instance"].chunks == (1, H, W)
         n = f["frames/frame_id"].shape[0]
         assert f["frames/pose"].shape == (n, 30, 3)

