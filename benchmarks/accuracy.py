@@ -16,29 +16,17 @@ runs are reused, unfinished ones resumed), so rerunning the same command continu
 from __future__ import annotations
 
 import dataclasses
-import fcntl
 import json
 import os
 import subprocess
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
 import click
+from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
-LOCK = "/tmp/ga3ce-cpu.lock"
 CLI = [sys.executable, "-m", "ga3ce_prep.cli"]
-
-
-@contextmanager
-def cpu_lock():
-    with open(LOCK, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _run(cmd: list[str]) -> None:

@@ -19,7 +19,6 @@ under `flock`. Figures are provisional on a busy machine.
 """
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import resource
@@ -27,28 +26,17 @@ import shutil
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread everywhere
 
 import click  # noqa: E402
 import numpy as np  # noqa: E402
+from cpu_lock import cpu_lock  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 WIDTH = 640
 FRAMES_PER_SCENE = 4
-
-
-@contextmanager
-def cpu_lock():
-    with open("/tmp/ga3ce-cpu.lock", "w") as f:
-        t = time.perf_counter()
-        fcntl.flock(f, fcntl.LOCK_EX)
-        waited = time.perf_counter() - t
-        if waited > 1:
-            print(f"(waited {waited:.0f} s for /tmp/ga3ce-cpu.lock)", flush=True)
-        yield
 
 
 def world(base: Path, n_frames: int) -> Path:

@@ -15,37 +15,23 @@ not under `flock`. Figures are provisional on a busy machine.
 """
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import resource
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import click
 import numpy as np
+from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-LOCK = "/tmp/ga3ce-cpu.lock"
+
 MODES = {"fixed168": dict(n_max=168, bucket=False), "per_batch": dict(n_max=None, bucket=False),
          "bucketed": dict(n_max=None, bucket=True)}
-
-
-@contextmanager
-def cpu_lock(enabled: bool):
-    if not enabled:
-        yield
-        return
-    with open(LOCK, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _rss_mb() -> float:

@@ -131,36 +131,33 @@ def _num(x: float | None, std: float | None = None) -> str:
     return f"{x:5.2f}" + (f" +- {std:4.2f}" if std is not None else "")
 
 
+def _table_lines(rows: dict[str, dict], summary: dict[str, Any], table: str, marks: tuple[str, str, str]) -> list[str]:
+    """One of the paper's tables: a header, then per ablation in it its marks, the paper's 3D MAE
+    and ratio, ours (mean +- std over seeds) and ratio."""
+    col = summary["paper_column"]
+    out = [f"{'':30s} {marks[0]:>5s} {marks[1]:>5s} {marks[2]:>5s} | {'paper ' + col.upper():>9s} {'ratio':>6s} | "
+           f"{'ours':>13s} {'ratio':>6s}"]
+    for a in ABLATIONS:
+        r, m = rows.get(a.name), getattr(a, table)
+        if r is None or m is None:
+            continue
+        out.append(f"{a.label:30s} {m[0]:>5s} {m[1]:>5s} {m[2]:>5s} | "
+                   f"{_num(r['paper_' + col]):>9s} {_num(r['paper_ratio_' + col]):>6s} | "
+                   f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
+    return out
+
+
 def format_ablation_table(summary: dict[str, Any]) -> str:
     """Tables 4 and 5 laid out as in the paper, with our 3D MAE and ratio beside the paper's."""
     rows = {r["name"]: r for r in summary["rows"]}
-    col = summary["paper_column"].upper()
     seeds = summary["seeds"]
     head = (f"{summary['store']} | split {summary['split']} | v prior 3D MAE {summary['v_prior_mae3d']:.2f} deg | "
             f"{summary['epochs']} epochs | seeds {seeds}")
     out = [head, "", "Table 4: input components (x = used)"]
-    out.append(f"{'':30s} {'App.':>5s} {'Pose':>5s} {'Obj.':>5s} | {'paper ' + col:>9s} {'ratio':>6s} | "
-               f"{'ours':>13s} {'ratio':>6s}")
-    for a in ABLATIONS:
-        r = rows.get(a.name)
-        if r is None or a.table4 is None:
-            continue
-        pr = r[f"paper_ratio_{summary['paper_column']}"]
-        out.append(f"{a.label:30s} {a.table4[0]:>5s} {a.table4[1]:>5s} {a.table4[2]:>5s} | "
-                   f"{_num(r['paper_' + summary['paper_column']]):>9s} {_num(pr):>6s} | "
-                   f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
+    out += _table_lines(rows, summary, "table4", ("App.", "Pose", "Obj."))
     out += ["  (x* = 3D context fed without the egocentric transform and with standard encoding)", "",
             "Table 5: GA3CE components (x = used)"]
-    out.append(f"{'':30s} {'Ego.':>5s} {'Cyc.':>5s} {'D3':>5s} | {'paper ' + col:>9s} {'ratio':>6s} | "
-               f"{'ours':>13s} {'ratio':>6s}")
-    for a in ABLATIONS:
-        r = rows.get(a.name)
-        if r is None or a.table5 is None:
-            continue
-        pr = r[f"paper_ratio_{summary['paper_column']}"]
-        out.append(f"{a.label:30s} {a.table5[0]:>5s} {a.table5[1]:>5s} {a.table5[2]:>5s} | "
-                   f"{_num(r['paper_' + summary['paper_column']]):>9s} {_num(pr):>6s} | "
-                   f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
+    out += _table_lines(rows, summary, "table5", ("Ego.", "Cyc.", "D3"))
     out.append("")
     out.append("ratio = 3D MAE / appearance-only 3D MAE (ours: the store's v prior on the same frames)")
     if summary["full_best"] is True:

@@ -1,0 +1,27 @@
+"""The shared-machine convention of the benchmarks: one CPU-heavy job at a time, under a file lock."""
+from __future__ import annotations
+
+import fcntl
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+LOCK = "/tmp/ga3ce-cpu.lock"
+
+
+@contextmanager
+def cpu_lock(enabled: bool = True) -> Iterator[None]:
+    """Hold /tmp/ga3ce-cpu.lock (exclusive) for the block; say how long we waited for it."""
+    if not enabled:
+        yield
+        return
+    with open(LOCK, "a") as f:
+        t = time.perf_counter()
+        fcntl.flock(f, fcntl.LOCK_EX)
+        waited = time.perf_counter() - t
+        if waited > 1:
+            print(f"(waited {waited:.0f} s for {LOCK})", flush=True)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
