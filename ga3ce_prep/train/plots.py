@@ -64,9 +64,11 @@ def plot_ablation(rows: Sequence[dict[str, Any]], path: str | Path, paper_column
     appearance-only MAE), so a synthetic store and the paper's dataset compare on one axis."""
     plt = _pyplot()
     names = [r["label"] for r in rows]
-    ours = [r.get("ratio", np.nan) for r in rows]
-    err = [r.get("ratio_std", 0.0) or 0.0 for r in rows]
-    paper = [r.get(f"paper_ratio_{paper_column}", np.nan) for r in rows]
+    def values(key: str) -> np.ndarray:  # None (e.g. no paper figure for a row) -> NaN, no bar
+        return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+
+    ours, paper = values("ratio"), values(f"paper_ratio_{paper_column}")
+    err = np.nan_to_num(values("ratio_std"))
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(rows)), 4), dpi=110)
     ax.bar(x - 0.2, ours, 0.4, yerr=err, label="ours (3D MAE / v prior)")
