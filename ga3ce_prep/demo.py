@@ -32,7 +32,7 @@ def _done(t0: float) -> None:
               help="Folder for the dataset, the store and the run.")
 @click.option("--scenes", default=48, show_default=True, help="Synthetic scenes (rooms); splits are by scene.")
 @click.option("--frames-per-scene", default=60, show_default=True, help="Frames per scene.")
-@click.option("--epochs", default=20, show_default=True, help="Training epochs (the paper's recipe otherwise).")
+@click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the world and of training.")
 @click.option("--workers", default=None, type=int, help="dask worker processes for prep (default: threads).")
 def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, workers: int | None) -> None:
@@ -63,7 +63,7 @@ def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, w
     click.echo(summary.format())
     _done(t0)
 
-    t0 = _step(3, f"training GA3CE ({epochs} epochs, the paper's recipe) -> {run}")
+    t0 = _step(3, f"training GA3CE ({epochs} epochs, the default recipe: docs/training.md) -> {run}")
     if (run / "best.pt").is_file():
         click.echo("      reusing the trained run (delete it to train again)")
     else:
