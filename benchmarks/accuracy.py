@@ -25,8 +25,14 @@ from pathlib import Path
 import click
 from cpu_lock import cpu_lock
 
+from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.train import TrainConfig
+from ga3ce_prep.train.ablate import ABLATIONS, ablate
+from ga3ce_prep.train.cli import _model_sets
+
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "ga3ce_prep.cli"]
+RECIPE = TrainConfig()   # the default recipe
 
 
 def _run(cmd: list[str]) -> None:
@@ -48,18 +54,13 @@ def _run(cmd: list[str]) -> None:
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Pipeline override passed to `ga3ce-prep run --set` (repeatable).")
 @click.option("--rows", default=None, help="Ablation rows (default: all).")
 @click.option("--seeds", default="0", show_default=True, help="Training seeds (comma-separated): mean +- std.")
-@click.option("--epochs", default=20, show_default=True, help="Training epochs (the recipe: 20).")
-@click.option("--lr", default=3e-4, show_default=True, help="Peak learning rate (our default; the paper: 1.4e-3).")
+@click.option("--epochs", default=RECIPE.epochs, show_default=True, help="Training epochs (the default recipe's).")
+@click.option("--lr", default=RECIPE.lr, show_default=True, help="Peak learning rate (the default recipe's; the paper: 1.4e-3).")
 @click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True, help="View-noise augmentation.")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")
 def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_config, pipeline, sets, rows, seeds, epochs, lr, view_noise,
          model_set, train_frames):
-    from ga3ce_prep.model import ModelConfig
-    from ga3ce_prep.train import TrainConfig
-    from ga3ce_prep.train.ablate import ABLATIONS, ablate
-    from ga3ce_prep.train.cli import _model_sets
-
     out = Path(out)
     data = Path(data) if data else out / "data"
     store = Path(store_path) if store_path else out / f"{pipeline}.zarr"

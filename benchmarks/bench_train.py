@@ -29,7 +29,6 @@ from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-
 MODES = {"fixed168": dict(n_max=168, bucket=False), "per_batch": dict(n_max=None, bucket=False),
          "bucketed": dict(n_max=None, bucket=True)}
 

@@ -43,20 +43,23 @@ def _model_sets(items: tuple[str, ...]) -> dict[str, Any]:
 
 
 def recipe_options(f):
-    """The training recipe's options, shared by train and ablate."""
+    """The training recipe's options, shared by train and ablate; defaults are TrainConfig's."""
+    from .trainer import TrainConfig  # (ga3ce_prep.train has imported it already)
+
+    d = TrainConfig()
     opts = [
-        click.option("--epochs", default=20, show_default=True, help="Training epochs."),
-        click.option("--batch-size", default=32, show_default=True, help="Frames per batch (paper: 32 GFIE, 64 GAFA)."),
-        click.option("--lr", default=3e-4, show_default=True,
+        click.option("--epochs", default=d.epochs, show_default=True, help="Training epochs."),
+        click.option("--batch-size", default=d.batch_size, show_default=True, help="Frames per batch (paper: 32 GFIE, 64 GAFA)."),
+        click.option("--lr", default=d.lr, show_default=True,
                      help="Peak AdamW learning rate (the paper: 1.4e-3, which collapses to g = v here; docs/training.md)."),
-        click.option("--weight-decay", default=0.1, show_default=True, help="AdamW weight decay."),
-        click.option("--warmup-epochs", default=4.0, show_default=True, help="Linear warm-up length in epochs (per-step schedule), then cosine decay to 0."),
-        click.option("--grad-clip", default=0.1, show_default=True, help="Gradient clipping, L2 norm."),
-        click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
+        click.option("--weight-decay", default=d.weight_decay, show_default=True, help="AdamW weight decay."),
+        click.option("--warmup-epochs", default=d.warmup_epochs, show_default=True, help="Linear warm-up length in epochs (per-step schedule), then cosine decay to 0."),
+        click.option("--grad-clip", default=d.grad_clip, show_default=True, help="Gradient clipping, L2 norm."),
+        click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default=d.view_noise, show_default=True,
                      help="View-noise augmentation v <- normalise(v + U[-0.5,0.5]^3); auto = on for GFIE stores only (the paper's recipe)."),
-        click.option("--seed", default=0, show_default=True, help="Seed of every random draw (same seed, same weights on CPU)."),
-        click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to train."),
-        click.option("--threads", default=2, show_default=True, help="torch CPU threads (keep at the number of free cores)."),
+        click.option("--seed", default=d.seed, show_default=True, help="Seed of every random draw (same seed, same weights on CPU)."),
+        click.option("--device", type=click.Choice(["cpu", "cuda"]), default=d.device, show_default=True, help="Where to train."),
+        click.option("--threads", default=d.threads, show_default=True, help="torch CPU threads (keep at the number of free cores)."),
         click.option("--n-max", default="batch", show_default=True,
                      help="Object padding: batch (to the batch's largest count), auto (168 GFIE/CAD-120, 278 GAFA) or a number; frames with more keep their largest masks."),
         click.option("--no-bucket", is_flag=True, help="Do not group batches by object count (slower with per-batch padding)."),

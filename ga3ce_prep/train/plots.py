@@ -64,6 +64,7 @@ def plot_ablation(rows: Sequence[dict[str, Any]], path: str | Path, paper_column
     appearance-only MAE), so a synthetic store and the paper's dataset compare on one axis."""
     plt = _pyplot()
     names = [r["label"] for r in rows]
+
     def values(key: str) -> np.ndarray:  # None (e.g. no paper figure for a row) -> NaN, no bar
         return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
 
