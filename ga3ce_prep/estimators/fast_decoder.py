@@ -515,6 +515,9 @@ def raw_to_image(raw: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Runner
 # ---------------------------------------------------------------------------------------------
+MASK_GRAPH_DISABLED_OPTIMIZERS = ("BiasGeluFusion",)
+
+
 class FastDecoder:
     """The restructured decoder on ONNX Runtime: `set_image` once per image, then `predict_iou` for a
     batch of prompts and `low_res_masks` for the prompts whose candidates are wanted.
@@ -522,16 +525,25 @@ class FastDecoder:
     decoder_path: the official decoder ONNX (its weights are read from it). providers: execution
     providers in preference order (see onnx_runtime.resolve_providers)."""
 
-    batch_size = 8   # prompts per token-graph call: its per-prompt tensors then stay in the CPU caches
+    # Prompts per token-graph call on CPU. One thread, ms per prompt (token graph / mask graph),
+    # onnxruntime 1.32 on this project's 2-core machine: B=1 12.6/10.3, 2 9.9/11.0, 4 10.1/11.3,
+    # 8 10.4/11.7, 16 11.1/12.3: at 2 the (B, 8, 7, 4096) attention tensors stay near the 1 MB L2
+    # cache. Other providers (GPU) take GPU_BATCH_SIZE prompts per call.
+    CPU_BATCH_SIZE = 2
+    GPU_BATCH_SIZE = 64
 
     def __init__(self, decoder_path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
         from .onnx_runtime import create_session
 
         w = decoder_weights(decoder_path)
         self.path = Path(decoder_path)
+        self.batch_size = self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w).SerializeToString(), providers, threads, "fast decoder (image)")
         self._tokens = create_session(build_token_graph(w).SerializeToString(), providers, threads, "fast decoder (tokens)")
-        self._masks = create_session(build_mask_graph(w).SerializeToString(), providers, threads, "fast decoder (masks)")
+        # ORT fuses the second GELU with its bias into BiasGelu, whose CPU kernel ran 4x slower per
+        # element than Gelu's on this machine (onnxruntime 1.32; same outputs): keep them apart
+        self._masks = create_session(build_mask_graph(w).SerializeToString(), providers, threads, "fast decoder (masks)",
+                                     disabled_optimizers=MASK_GRAPH_DISABLED_OPTIMIZERS)
         self._token_outputs = [o.name for o in self._tokens.get_outputs()]
         self._img: dict | None = None
 

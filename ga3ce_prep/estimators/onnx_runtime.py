@@ -68,16 +68,17 @@ def session_options(threads: int = 2) -> ort.SessionOptions:
 
 
 def create_session(model: str | Path | bytes, providers: Sequence[str], threads: int = 2,
-                   what: str = "model") -> ort.InferenceSession:
+                   what: str = "model", disabled_optimizers: Sequence[str] = ()) -> ort.InferenceSession:
     """An InferenceSession on a file path or serialized bytes; a missing or unreadable file raises
-    ModelFileError naming it."""
+    ModelFileError naming it. disabled_optimizers: ORT graph transformers to skip by name."""
     if not isinstance(model, bytes):
         path = Path(model)
         if not path.is_file():
             raise ModelFileError(f"{what} ONNX file not found: {path}")
         model = str(path)
     try:
-        return ort.InferenceSession(model, session_options(threads), providers=list(providers))
+        return ort.InferenceSession(model, session_options(threads), providers=list(providers),
+                                    disabled_optimizers=list(disabled_optimizers) or None)
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
         where = model if isinstance(model, str) else "(in memory)"
         raise ModelFileError(f"cannot load {what} ONNX {where}: {e}") from e
