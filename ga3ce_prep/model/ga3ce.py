@@ -57,11 +57,11 @@ class ModelConfig:
     joint_dir_width: int = 6
     object_dir_width: int = 128
     view_scale: float = 1.0
-    direction_scale: float = 1.0
+    direction_scale: float = 0.25
     pose_distance_scale: float = 0.05
     object_distance_scale: float = 0.3
-    pose_position_scale: float = 0.1
-    object_position_scale: float = 0.3
+    pose_position_scale: float = 0.05
+    object_position_scale: float = 0.15
     head_width_pair: tuple[int, int] = HEAD_WIDTH_PAIR
     fourier_seed: int = 0
 
