@@ -525,11 +525,13 @@ class FastDecoder:
     decoder_path: the official decoder ONNX (its weights are read from it). providers: execution
     providers in preference order (see onnx_runtime.resolve_providers)."""
 
-    # Prompts per token-graph call on CPU. One thread, ms per prompt (token graph / mask graph),
-    # onnxruntime 1.32 on this project's 2-core machine: B=1 12.6/10.3, 2 9.9/11.0, 4 10.1/11.3,
-    # 8 10.4/11.7, 16 11.1/12.3: at 2 the (B, 8, 7, 4096) attention tensors stay near the 1 MB L2
-    # cache. Other providers (GPU) take GPU_BATCH_SIZE prompts per call.
-    CPU_BATCH_SIZE = 2
+    # Prompts per token-graph call on CPU. One graph alone on one thread, ms per prompt (token graph /
+    # mask graph), onnxruntime 1.32 on this project's 2-core machine: B=1 12.6/10.3, 2 9.9/11.0,
+    # 4 10.1/11.3, 8 10.4/11.7, 16 11.1/12.3 (the (B, 8, 7, 4096) attention tensors then stay near
+    # the 1 MB L2 cache). In the segmenter (two batches at once) 2, 4 and 8 were within the
+    # machine's run-to-run spread (12.2-12.9 s per frame at 30%); 4 was never the slowest.
+    # Other providers (GPU) take GPU_BATCH_SIZE prompts per call.
+    CPU_BATCH_SIZE = 4
     GPU_BATCH_SIZE = 64
 
     def __init__(self, decoder_path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
