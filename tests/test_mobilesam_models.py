@@ -106,3 +106,30 @@ def test_generator_keeps_the_reference_candidates():
     # with the defaults random weights pass nothing (predicted IoUs far below 0.88), as in the reference
     seg.options = AmgOptions(points_per_side=5)
     assert len(seg.segment(rgb).masks) == 0
+
+
+def test_mask_graph_keeps_gelu_apart_from_its_bias(tmp_path):
+    """ORT would fuse the mask graph's bias + GELU into BiasGelu (a slower CPU kernel, docs/models.md);
+    the fast decoder's disabled-optimizer list must name that fusion, and without it the fusion happens
+    (if ORT renames it, this fails and the name must follow)."""
+    import onnxruntime as ort
+
+    from ga3ce_prep.estimators.fast_decoder import (MASK_GRAPH_DISABLED_OPTIMIZERS, build_mask_graph,
+                                                    decoder_weights)
+    from ga3ce_prep.estimators.onnx_runtime import session_options
+
+    graph = build_mask_graph(decoder_weights(DEC)).SerializeToString()
+
+    def optimized_ops(disabled):
+        so = session_options(1)
+        so.optimized_model_filepath = str(tmp_path / f"opt{len(disabled)}.onnx")
+        ort.InferenceSession(graph, so, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled) or None)
+        return [n.op_type for n in onnx.load(so.optimized_model_filepath).graph.node]
+
+    assert "BiasGelu" in optimized_ops(())
+    ops = optimized_ops(MASK_GRAPH_DISABLED_OPTIMIZERS)
+    assert "BiasGelu" not in ops and ops.count("Gelu") == 2
+
+
+def test_fast_decoder_batch_size_follows_the_provider():
+    assert FastDecoder(DEC).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
