@@ -515,6 +515,8 @@ def raw_to_image(raw: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Runner
 # ---------------------------------------------------------------------------------------------
+# ORT would fuse the mask graph's second bias + GELU into BiasGelu, whose CPU kernel is about 4x
+# slower per element than Gelu's (onnxruntime 1.32, same outputs; docs/models.md "Speed")
 MASK_GRAPH_DISABLED_OPTIMIZERS = ("BiasGeluFusion",)
 
 
@@ -525,12 +527,8 @@ class FastDecoder:
     decoder_path: the official decoder ONNX (its weights are read from it). providers: execution
     providers in preference order (see onnx_runtime.resolve_providers)."""
 
-    # Prompts per token-graph call on CPU. One graph alone on one thread, ms per prompt (token graph /
-    # mask graph), onnxruntime 1.32 on this project's 2-core machine: B=1 12.6/10.3, 2 9.9/11.0,
-    # 4 10.1/11.3, 8 10.4/11.7, 16 11.1/12.3 (the (B, 8, 7, 4096) attention tensors then stay near
-    # the 1 MB L2 cache). In the segmenter (two batches at once) 2, 4 and 8 were within the
-    # machine's run-to-run spread (12.2-12.9 s per frame at 30%); 4 was never the slowest.
-    # Other providers (GPU) take GPU_BATCH_SIZE prompts per call.
+    # Prompts per token-graph call: 4 on CPU (measured per batch size in docs/models.md, "Speed"),
+    # GPU_BATCH_SIZE on other providers.
     CPU_BATCH_SIZE = 4
     GPU_BATCH_SIZE = 64
 
@@ -542,8 +540,6 @@ class FastDecoder:
         self.batch_size = self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w).SerializeToString(), providers, threads, "fast decoder (image)")
         self._tokens = create_session(build_token_graph(w).SerializeToString(), providers, threads, "fast decoder (tokens)")
-        # ORT fuses the second GELU with its bias into BiasGelu, whose CPU kernel ran 4x slower per
-        # element than Gelu's on this machine (onnxruntime 1.32; same outputs): keep them apart
         self._masks = create_session(build_mask_graph(w).SerializeToString(), providers, threads, "fast decoder (masks)",
                                      disabled_optimizers=MASK_GRAPH_DISABLED_OPTIMIZERS)
         self._token_outputs = [o.name for o in self._tokens.get_outputs()]
