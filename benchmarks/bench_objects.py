@@ -47,9 +47,9 @@ def main() -> None:
     cv2.setNumThreads(args.threads)
 
     from ga3ce_prep.estimators.amg import AmgOptions
-    from ga3ce_prep.estimators.amg_reference import reference_generate
+    from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
-    from ga3ce_prep.estimators.scripted import drawn_frame
+    from ga3ce_prep.testing.scripted import drawn_frame
 
     d = model_dir()
     enc, dec = d / "mobile_sam_encoder.onnx", d / "mobile_sam_decoder.onnx"

@@ -1,6 +1,6 @@
 """Training throughput and memory on CPU, and the data path alone (`make bench-train`).
 
-Measures, on a toy store with 10-60 objects per frame (tests/store_fixtures.py):
+Measures, on a toy store with 10-60 objects per frame (ga3ce_prep/testing/toy_store.py):
   - training samples/s of the trainer's own step (forward, arccos loss, backward, clip, AdamW) at
     the paper's sizes, batch 32, with objects padded to a fixed 168 (the paper's GFIE padding),
     padded per batch (random batches), and padded per batch with bucketing by object count;
@@ -28,7 +28,6 @@ import numpy as np
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
 MODES = {"fixed168": dict(n_max=168, bucket=False), "per_batch": dict(n_max=None, bucket=False),
          "bucketed": dict(n_max=None, bucket=True)}
 
@@ -42,7 +41,7 @@ def _rss_mb() -> float:
 
 
 def _store(path: Path, frames: int) -> Path:
-    from store_fixtures import write_toy_store
+    from ga3ce_prep.testing.toy_store import write_toy_store
 
     if not (path / "zarr.json").exists():
         write_toy_store(path, frames, seed=0)

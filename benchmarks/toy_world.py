@@ -1,4 +1,4 @@
-"""Write the toy 3D-context world (tests/store_fixtures.py) as a store, for iterating on the model
+"""Write the toy 3D-context world (ga3ce_prep/testing/toy_store.py) as a store, for iterating on the model
 before (or beside) the rendered synthetic world: people with 30 joints, 10-60 objects 0.5-4 m from
 the head, gaze at an object most of the time, the head turning part of the way, v = truth + 20 deg
 noise partly pulled toward the head direction.
@@ -7,13 +7,9 @@ noise partly pulled toward the head direction.
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import click
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from store_fixtures import ToyKnobs, write_toy_store  # noqa: E402
+from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 
 
 @click.command()

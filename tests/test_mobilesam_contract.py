@@ -7,13 +7,13 @@ import onnx
 import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
-from ga3ce_prep.estimators import scripted
+from ga3ce_prep.testing import scripted
 from ga3ce_prep.estimators.amg import AmgOptions
 from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder,
                                              normalise_and_pad, resize_longest_side, transform_coords)
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
-from test_pipeline_fixtures import synth_world  # noqa: F401  (fixture)
+
 
 
 def label_image(h=480, w=640):

@@ -9,10 +9,10 @@ import pytest
 from onnx import numpy_helper
 
 from ga3ce_prep.estimators.amg import AmgOptions
-from ga3ce_prep.estimators.amg_reference import reference_generate
+from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
 from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder
-from ga3ce_prep.estimators.scripted import drawn_frame
+from ga3ce_prep.testing.scripted import drawn_frame
 
 MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
                              Path(__file__).resolve().parents[1].parent / "shared" / "models" / "mobilesam-random"))

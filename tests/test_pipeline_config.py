@@ -7,7 +7,6 @@ import yaml
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
 from ga3ce_prep.pipeline.config import PIPELINES_DIR
-from test_pipeline_fixtures import synth_world  # noqa: F401  (fixture)
 
 
 def _base():

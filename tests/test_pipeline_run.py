@@ -21,7 +21,7 @@ from ga3ce_prep.pipeline.lock import RunLock
 from ga3ce_prep.pipeline.tasks import Shard
 from ga3ce_prep.stages import STAGES
 from ga3ce_prep.store import open_store
-from test_pipeline_fixtures import SMALL, synth_world  # noqa: F401  (fixture)
+from ga3ce_prep.testing.worlds import SMALL
 
 PIPE = "synthetic"
 SHARD = ["run.shard_size=3"]

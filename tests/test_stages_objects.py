@@ -6,7 +6,7 @@ from ga3ce_prep.geometry import back_project
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.truth import TruthReader
-from test_pipeline_fixtures import SMALL, synth_world, synth_world_640  # noqa: F401  (fixtures)
+from ga3ce_prep.testing.worlds import SMALL
 
 
 def _expected_medians(truth, fid, depth, valid, K, kinds=("object", "furniture"), min_points=10):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from store_fixtures import ToyKnobs, write_toy_store
+from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.model import ModelConfig

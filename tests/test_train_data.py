@@ -4,7 +4,7 @@ import functools
 import numpy as np
 import pytest
 import torch
-from store_fixtures import ToyKnobs, toy_world, write_toy_store
+from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 
 from ga3ce_prep.geometry import angular_error_deg
 from ga3ce_prep.model import GA3CE
@@ -51,7 +51,7 @@ def test_dataset_drops_unusable_frames_and_objects(tmp_path):
     frames["split"][:] = 0
     w = StoreWriter(tmp_path / "s.zarr", scene_names=scenes)
     w.append_frames(frames, objects)
-    from store_fixtures import ATTRS
+    from ga3ce_prep.testing.toy_store import ATTRS
     w.close(ATTRS)
     st = open_store(tmp_path / "s.zarr")
     ds = ContextDataset(st, "train")

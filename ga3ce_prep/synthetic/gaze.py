@@ -65,7 +65,3 @@ def head_direction(gaze: np.ndarray, torso_forward: np.ndarray, head_follow: flo
         h = slerp(gaze, h, eye_offset_max / off)
     return unit(h)
 
-
-def torso_yaw(heading: float, gaze: np.ndarray, body_follow: float) -> float:
-    """Torso yaw (rad) turned body_follow of the way from `heading` to the gaze's yaw."""
-    return heading + body_follow * wrap(yaw_of(gaze) - heading)

@@ -84,15 +84,6 @@ class Room:
         """World (x, y) of free-grid cell centres."""
         return np.stack([(ix + 0.5) * GRID, (iy + 0.5) * GRID], axis=-1)
 
-    def is_free(self, xy: np.ndarray) -> np.ndarray:
-        """Whether world points (..., 2) lie in free cells."""
-        ix = np.floor(xy[..., 0] / GRID).astype(int)
-        iy = np.floor(xy[..., 1] / GRID).astype(int)
-        ok = (ix >= 0) & (iy >= 0) & (ix < self.free.shape[1]) & (iy < self.free.shape[0])
-        out = np.zeros(ok.shape, bool)
-        out[ok] = self.free[iy[ok], ix[ok]]
-        return out
-
 
 def _colour(rng: np.random.Generator, sat=(0.2, 0.9), val=(0.3, 0.95)) -> np.ndarray:
     h = rng.random()

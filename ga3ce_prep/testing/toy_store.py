@@ -21,7 +21,7 @@ from ga3ce_prep.skeleton import N_JOINTS
 from ga3ce_prep.store import StoreWriter
 
 ATTRS = {"package_version": "0.1.0", "dataset": {"name": "toy", "root": "(generated)"},
-         "pipeline": {"file": "tests/store_fixtures.py", "sha256": "0" * 64},
+         "pipeline": {"file": "ga3ce_prep/testing/toy_store.py", "sha256": "0" * 64},
          "stages": {"objects": {"backend": "toy"}, "pose": {"backend": "toy"}, "view": {"backend": "toy"}}}
 
 # Body joints 0..23 relative to the pelvis, person frame (x = person's right, y down, z = facing),

@@ -1,4 +1,4 @@
-"""Small ONNX models with MobileSAM's official interfaces, for tests and weight-free demos.
+"""Small ONNX models with MobileSAM's official interfaces, for the tests and benchmarks.
 
 - `pooling_encoder(form)`: an "encoder" whose embedding is the 16x16 block mean of the normalised,
   padded input (channel c = RGB channel c % 3), in the normalised `[1, 3, 1024, 1024]` form or
@@ -14,12 +14,9 @@ import cv2
 import numpy as np
 from onnx import TensorProto
 
-from .amg import preprocess_shape
-from .onnx_graph import GraphBuilder
-
-MEAN = np.array([123.675, 116.28, 103.53], np.float32)
-STD = np.array([58.395, 57.12, 57.375], np.float32)
-
+from ..estimators.amg import preprocess_shape
+from ..estimators.mobilesam import PIXEL_MEAN, PIXEL_STD
+from ..estimators.onnx_graph import GraphBuilder
 
 def _pool_to_embedding(g: GraphBuilder, x: str) -> str:
     pooled = g.op("AveragePool", x, kernel_shape=[16, 16], strides=[16, 16])     # (1, 3, 64, 64)
@@ -36,7 +33,7 @@ def pooling_encoder(form: str = "normalised", input_name: str | None = None, siz
         x = g.input(input_name or "image", [1, 3, size, size])
     elif form == "preprocess":
         img = g.input(input_name or "input_image", ["image_height", "image_width", 3])
-        x = g.transpose(g.div(g.sub(img, g.const(MEAN)), g.const(STD)), [2, 0, 1])   # (3, H, W)
+        x = g.transpose(g.div(g.sub(img, g.const(PIXEL_MEAN)), g.const(PIXEL_STD)), [2, 0, 1])   # (3, H, W)
         hw = g.slice(g.op("Shape", x), [1], [3], [0])
         pad_hw = g.sub(g.const([1024, 1024], dtype=np.int64), hw)
         pads = g.concat([g.const([0, 0, 0], dtype=np.int64), g.const([0], dtype=np.int64), pad_hw], axis=0)   # end (0, ph, pw)

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import amg
-from .mobilesam import ImageEncoder, OfficialDecoder, transform_coords
+from ..estimators import amg
+from ..estimators.mobilesam import ImageEncoder, OfficialDecoder, transform_coords
 
 
 @dataclass

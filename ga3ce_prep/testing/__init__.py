@@ -1,0 +1,10 @@
+"""Test worlds and scripted models for the test suite and the benchmarks; never imported by the
+product path.
+
+- `worlds`: the small synthetic worlds the tests share (sizes, seeds) and the pipeline overrides
+  that fit them.
+- `toy_store`: a toy 3D-context world written straight into the store format, for the trainer.
+- `scripted`: tiny ONNX models with MobileSAM's official interfaces whose outputs are known.
+- `amg_reference`: the automatic mask generator in the official order of operations (slow on
+  purpose), what the fast generator is checked and timed against.
+"""
