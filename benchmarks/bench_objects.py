@@ -13,6 +13,7 @@ Run it alone (`flock /tmp/ga3ce-cpu.lock make bench-objects`): 2 threads, severa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -46,9 +47,8 @@ def main() -> None:
     args = ap.parse_args()
     cv2.setNumThreads(args.threads)
 
-    from ga3ce_prep.estimators.amg import AmgOptions
     from ga3ce_prep.testing.amg_reference import reference_generate
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
     from ga3ce_prep.testing.scripted import drawn_frame
 
     d = model_dir()
@@ -56,12 +56,10 @@ def main() -> None:
     if not enc.is_file() or not dec.is_file():
         sys.exit(f"models not found in {d}; set GA3CE_MOBILESAM_DIR")
     rgb = drawn_frame()
-    base = AmgOptions(points_per_side=args.points_per_side)
-    seg = MobileSamSegmenter(enc, dec, AmgOptions(points_per_side=args.points_per_side, pred_iou_thresh=0.0),
-                             threads=args.threads)
+    base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
+    seg = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=0.0))
     # the predicted IoUs of every candidate, to place the thresholds
-    probe = MobileSamSegmenter(enc, dec, AmgOptions(points_per_side=args.points_per_side, pred_iou_thresh=1e9),
-                               threads=args.threads, verify=False)
+    probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
     emb = probe.encoder.embed(rgb)
     probe.decoder.set_image(emb)
     from ga3ce_prep.estimators.amg import build_point_grid
@@ -79,7 +77,7 @@ def main() -> None:
     for frac in [float(f) for f in args.fractions.split(",")]:
         k = int(round(frac * len(ious)))
         thr = 0.0 if k >= len(ious) else float(ious[len(ious) - k - 1])
-        opt = AmgOptions(**{**base.to_dict(), "pred_iou_thresh": thr})
+        opt = dataclasses.replace(base, pred_iou_thresh=thr)
         seg.options = opt
         seg.segment(rgb) if not results else None   # warm-up once
         runs = []

@@ -1,6 +1,8 @@
 """MobileSAM runners on small ONNX models with the official interfaces (built here with onnx.helper):
 contract errors, preprocessing in both encoder forms, coordinates, batching, and the whole automatic
 mask generator end to end with a scripted decoder whose masks come from a label image."""
+import dataclasses
+
 import cv2
 import numpy as np
 import onnx
@@ -8,7 +10,7 @@ import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.testing import scripted
-from ga3ce_prep.estimators.amg import AmgOptions
+from ga3ce_prep.estimators.mobilesam import SegmenterOptions
 from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder,
                                              normalise_and_pad, resize_longest_side, transform_coords)
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
@@ -109,7 +111,7 @@ def test_official_decoder_loops_or_batches(files, dec):
 @pytest.mark.parametrize("dec", ["dec", "dec_batch"])
 def test_segment_everything_end_to_end_with_scripted_decoder(files, dec):
     lab = files["labels"]
-    seg = MobileSamSegmenter(files["enc"], files[dec], AmgOptions(points_per_side=8), decoder_mode="official")
+    seg = MobileSamSegmenter(files["enc"], files[dec], SegmenterOptions(points_per_side=8, decoder_mode="official"))
     rgb = np.full((480, 640, 3), 128, np.uint8)
     r = seg.segment(rgb)
     # background prompts (IoU 0.2) and the whole-frame token (0.6) fail the 0.88 filter; the two copies of
@@ -140,9 +142,9 @@ def test_min_mask_region_area_fills_holes(files, tmp_path):
     path = tmp_path / "dec_hole.onnx"
     onnx.save(scripted.scripted_decoder(lab), path)
     rgb = np.full((480, 640, 3), 128, np.uint8)
-    plain = MobileSamSegmenter(files["enc"], path, AmgOptions(points_per_side=8), decoder_mode="official").segment(rgb)
-    filled = MobileSamSegmenter(files["enc"], path, AmgOptions(points_per_side=8, min_mask_region_area=100),
-                                decoder_mode="official").segment(rgb)
+    opt = SegmenterOptions(points_per_side=8, decoder_mode="official")
+    plain = MobileSamSegmenter(files["enc"], path, opt).segment(rgb)
+    filled = MobileSamSegmenter(files["enc"], path, dataclasses.replace(opt, min_mask_region_area=100)).segment(rgb)
     i = [np.bincount(lab[m]).argmax() for m in plain.masks].index(1)
     j = [np.bincount(lab[m]).argmax() for m in filled.masks].index(1)
     hole = np.zeros(lab.shape, bool)
@@ -170,10 +172,10 @@ def test_export_command_help_and_clear_errors(tmp_path, monkeypatch):
 
 def test_iou_filter_is_strict(files):
     rgb = np.full((480, 640, 3), 128, np.uint8)
-    seg = MobileSamSegmenter(files["enc"], files["dec"], AmgOptions(points_per_side=8, pred_iou_thresh=0.97),
-                             decoder_mode="official")
+    seg = MobileSamSegmenter(files["enc"], files["dec"], SegmenterOptions(points_per_side=8, pred_iou_thresh=0.97,
+                                                                          decoder_mode="official"))
     assert len(seg.segment(rgb).masks) == 0          # 0.97 > 0.97 is false (float32, as the reference)
-    seg.options = AmgOptions(points_per_side=8, pred_iou_thresh=0.969)
+    seg.options = SegmenterOptions(points_per_side=8, pred_iou_thresh=0.969, decoder_mode="official")
     assert len(seg.segment(rgb).masks) == 3
 
 
@@ -191,7 +193,7 @@ def test_scripted_decoder_on_the_synthetic_worlds_instance_masks(synth_world, tm
     enc = tmp_path / "enc.onnx"
     onnx.save(scripted.pooling_encoder("normalised"), enc)
     rgb = load_rgb(frame.image_path)
-    r = MobileSamSegmenter(enc, path, AmgOptions(points_per_side=16), decoder_mode="official").segment(rgb)
+    r = MobileSamSegmenter(enc, path, SegmenterOptions(points_per_side=16, decoder_mode="official")).segment(rgb)
     ids, areas = np.unique(inst[inst > 0], return_counts=True)
     big = set(ids[areas >= 0.02 * inst.size].tolist())
     matched = set()

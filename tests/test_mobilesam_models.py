@@ -8,10 +8,9 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from ga3ce_prep.estimators.amg import AmgOptions
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder
+from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder, SegmenterOptions
 from ga3ce_prep.testing.scripted import drawn_frame
 
 MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
@@ -89,8 +88,8 @@ def test_generator_keeps_the_reference_candidates():
     fast generator decodes the same candidates with the same predicted IoUs and stability scores and
     keeps the same masks, in the same order, as the reference order on the official files."""
     rgb = drawn_frame()
-    opt = AmgOptions(points_per_side=5, pred_iou_thresh=0.0, stability_score_thresh=0.3,
-                     stability_score_offset=0.05, box_nms_thresh=1.0)
+    opt = SegmenterOptions(points_per_side=5, pred_iou_thresh=0.0, stability_score_thresh=0.3,
+                           stability_score_offset=0.05, box_nms_thresh=1.0)
     seg = MobileSamSegmenter(ENC, DEC, opt)
     fast = seg.segment(rgb)
     ref = reference_generate(seg.encoder, seg.official, rgb, opt)
@@ -104,7 +103,7 @@ def test_generator_keeps_the_reference_candidates():
     diff = (fast.masks != ref.masks).reshape(len(ref.masks), -1).sum(axis=1)
     assert diff.max() <= 0.001 * 480 * 640          # float noise at the 0 threshold only
     # with the defaults random weights pass nothing (predicted IoUs far below 0.88), as in the reference
-    seg.options = AmgOptions(points_per_side=5)
+    seg.options = SegmenterOptions(points_per_side=5)
     assert len(seg.segment(rgb).masks) == 0
 
 

@@ -5,8 +5,7 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.datasets import open_dataset
-from ga3ce_prep.estimators.amg import AmgOptions
-from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
 from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.geometry import object_positions
 from ga3ce_prep.store import open_store
@@ -32,7 +31,7 @@ def test_run_with_mobilesam_objects(synth_world, tmp_path):
     conf = load_pipeline("synthetic-mobilesam", synth_world, check_files=False)
     frame = next(iter(open_dataset(conf.dataset_format, synth_world, **conf.dataset_options)))
     i = list(store.frames["id"]).index(frame.id)
-    seg = MobileSamSegmenter(ENC, DEC, AmgOptions(**PARAMS))
+    seg = MobileSamSegmenter(ENC, DEC, SegmenterOptions(**PARAMS))
     depth_backend = conf.stages["depth"].make(synth_world)
     depth = depth_backend.depth(frame)
     r = seg.segment(load_rgb(frame.image_path), out_size=depth.depth.shape)

@@ -16,26 +16,24 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
+from ..params import param
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class AmgOptions:
-    """segment-anything's generator options, with its defaults (the MobileSAM app uses them all).
+    """segment-anything's generator options, with its defaults (the MobileSAM app uses them all)."""
 
-    points_per_batch only sets how many prompts go to the official decoder per call; the fast
-    decoder batches its own way. Neither changes the result."""
-
-    points_per_side: int = 32
-    points_per_batch: int = 64
-    pred_iou_thresh: float = 0.88
-    stability_score_thresh: float = 0.95
-    stability_score_offset: float = 1.0
-    box_nms_thresh: float = 0.7
-    crop_n_layers: int = 0
-    crop_nms_thresh: float = 0.7
-    crop_overlap_ratio: float = 512 / 1500
-    crop_n_points_downscale_factor: int = 1
-    min_mask_region_area: int = 0
+    points_per_side: int = param(32, minimum=1)  # grid of single-point prompts per side (32 = 1024 prompts)
+    points_per_batch: int = param(64, minimum=1)  # prompts per official-decoder call (decoder_mode official); the fast decoder batches its own way; results do not depend on it
+    pred_iou_thresh: float = 0.88  # keep masks whose predicted IoU exceeds this (0 = no filter)
+    stability_score_thresh: float = 0.95  # keep masks whose stability score reaches this (0 = no filter)
+    stability_score_offset: float = 1.0  # logit offset of the stability score
+    box_nms_thresh: float = param(0.7, minimum=0, maximum=1)  # box IoU above which the lower-scored mask is dropped
+    crop_n_layers: int = param(0, minimum=0)  # extra layers of image crops (0 = the whole image only)
+    crop_nms_thresh: float = param(0.7, minimum=0, maximum=1)  # box NMS threshold across crops
+    crop_overlap_ratio: float = 512 / 1500  # crop overlap as a fraction of the short side
+    crop_n_points_downscale_factor: int = param(1, minimum=1)  # points per side divided by this per crop layer
+    min_mask_region_area: int = param(0, minimum=0)  # fill holes and drop islands smaller than this many pixels (0 = off)
 
     def __post_init__(self):
         if self.points_per_side < 1 or self.points_per_batch < 1:

@@ -19,6 +19,7 @@ import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from typing import Literal
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from PIL import Image
 
 from ..errors import ConfigError, FrameError, ModelFileError
 from . import amg
-from .onnx_runtime import (TensorSpec, check_contract, create_session, file_sha256, input_dims,
+from .onnx_runtime import (RuntimeParams, TensorSpec, check_contract, create_session, file_sha256, input_dims,
                            resolve_providers)
 
 IMG_SIZE = 1024
@@ -203,22 +204,28 @@ def _crop_output_box(crop: list[int], img_hw: tuple[int, int], out_hw: tuple[int
     return [int(round(crop[0] * sx)), int(round(crop[1] * sy)), int(round(crop[2] * sx)), int(round(crop[3] * sy))]
 
 
+@dataclass(frozen=True, kw_only=True)
+class SegmenterOptions(amg.AmgOptions, RuntimeParams):
+    """Everything `MobileSamSegmenter` is configured with besides its two files: the generator's
+    options (AmgOptions), the ONNX Runtime settings (RuntimeParams) and the decoder mode."""
+
+    decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster); official: the exported decoder graph, one call per prompt
+
+
 class MobileSamSegmenter:
     """segment-anything's automatic mask generator with MobileSAM's ONNX files.
 
-    encoder, decoder: the ONNX paths. options: AmgOptions. providers: execution providers ("cpu",
-    "cuda", or ORT names, in preference order). threads: intra-op threads per session. decoder_mode:
-    "fast" (restructured decoder built from the decoder file's weights, filter first, masks only
-    for the candidates that pass the IoU filter) or "official" (the decoder graph as exported).
+    encoder, decoder: the ONNX paths. options: SegmenterOptions (generator, runtime, decoder mode).
     verify: on load, check the fast decoder against the official graph on a few prompts and refuse
     a mismatch (catches an export whose weights were read wrongly)."""
 
-    def __init__(self, encoder: str | Path, decoder: str | Path, options: amg.AmgOptions | None = None,
-                 providers="cpu", threads: int = 2, decoder_mode: str = "fast", verify: bool = True):
+    def __init__(self, encoder: str | Path, decoder: str | Path, options: SegmenterOptions = SegmenterOptions(),
+                 verify: bool = True):
+        decoder_mode, threads = options.decoder_mode, options.threads
         if decoder_mode not in ("fast", "official"):
             raise ModelFileError(f"decoder_mode must be 'fast' or 'official', got {decoder_mode!r}")
-        self.options = options or amg.AmgOptions()
-        self.providers = resolve_providers(providers)
+        self.options = options
+        self.providers = resolve_providers(options.providers)
         self.encoder_path, self.decoder_path = Path(encoder), Path(decoder)
         self.encoder = ImageEncoder(encoder, self.providers, threads)
         self.official = OfficialDecoder(decoder, self.providers, threads)
@@ -249,7 +256,7 @@ class MobileSamSegmenter:
         """Backend parameters and model hashes for the store's provenance."""
         return {"encoder": str(self.encoder_path), "encoder_sha256": file_sha256(self.encoder_path),
                 "decoder": str(self.decoder_path), "decoder_sha256": file_sha256(self.decoder_path),
-                "decoder_mode": self.decoder_mode, "providers": self.providers, **self.options.to_dict()}
+                **self.options.to_dict(), "providers": self.providers}
 
     def verify(self, n_prompts: int = 3, atol: float = 1e-3) -> float:
         """Compare the fast decoder with the official graph on a random embedding; returns the max

@@ -10,6 +10,7 @@ from typing import Sequence
 import onnxruntime as ort
 
 from ..errors import ConfigError, ModelFileError
+from ..params import param
 
 Dim = int | str | None  # int: that size; str: any size (a named, dynamic axis); None: any size
 
@@ -21,6 +22,14 @@ class TensorSpec:
     name: str
     shape: tuple[Dim, ...]
     dtype: str = "tensor(float)"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RuntimeParams:
+    """How an ONNX estimator runs: every ONNX backend's parameters include these."""
+
+    providers: str = "cpu"  # ONNX Runtime execution providers in preference order, comma-separated: cpu, cuda (needs onnxruntime-gpu), tensorrt, or full provider names
+    threads: int = param(2, minimum=1)  # intra-op threads per ONNX Runtime session
 
 
 def file_sha256(path: str | Path) -> str:

@@ -82,6 +82,9 @@ class Backend:
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
         self.params = dict(params)
         self.ctx = ctx
+        if hasattr(type(self), "Params"):
+            from ..params import from_dict
+            self.p = from_dict(self.Params, self.params, f"stages.{self.stage}.params")
 
     def check(self) -> None:
         """Validate once before any work (files readable, keys present); raise ConfigError or

@@ -20,15 +20,25 @@ marked "x-file": "model") in schemas/pipeline.schema.json.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
 from ..frames import FrameRef
 from ..geometry import object_positions
+from ..params import param
 from .base import DepthMap, FrameObjects, ObjectsBackend
 from .geometric import GeometricParams, segment_geometric
 from .noise import frame_rng
 from .truth import truth_record
+
+
+@dataclass(frozen=True, kw_only=True)
+class MaskParams:
+    """Parameters every mask-producing backend shares."""
+
+    min_points: int = param(10, minimum=1)  # masks with fewer measured depth points are dropped (and counted)
 
 
 class MaskObjects(ObjectsBackend):

@@ -2,22 +2,22 @@
 
 Masks come straight at the depth map's resolution (the decoder's `orig_im_size` trick); the
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
-IoUs. Parameters (schemas/pipeline.schema.json `$defs/objects.mobilesam`): the encoder and
-decoder ONNX files, `providers` ("cpu", "cuda", ... in preference order), `threads`,
-`decoder_mode` ("fast" or "official") and the generator's options (points_per_side,
-pred_iou_thresh, stability_score_thresh, ...).
+IoUs.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
+from ..estimators.mobilesam import SegmenterOptions
 from ..frames import FrameRef, load_rgb
+from ..params import param
 from .base import DepthMap
-from .objects import MaskObjects
+from .objects import MaskObjects, MaskParams
 
-AMG_KEYS = ("points_per_side", "points_per_batch", "pred_iou_thresh", "stability_score_thresh",
-            "stability_score_offset", "box_nms_thresh", "crop_n_layers", "crop_nms_thresh",
-            "crop_overlap_ratio", "crop_n_points_downscale_factor", "min_mask_region_area")
+EXPORT_HINT = "make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint"
 
 
 class MobileSAMObjects(MaskObjects):
@@ -25,20 +25,19 @@ class MobileSAMObjects(MaskObjects):
 
     name = "mobilesam"
 
-    def _options(self):
-        from ..estimators.amg import AmgOptions
-
-        return AmgOptions(**{k: self.params[k] for k in AMG_KEYS if k in self.params})
+    @dataclass(frozen=True, kw_only=True)
+    class Params(MaskParams, SegmenterOptions):
+        encoder: Path = param(file="model", hint=EXPORT_HINT)  # MobileSAM image encoder ONNX
+        decoder: Path = param(file="model", hint=EXPORT_HINT)  # MobileSAM mask decoder ONNX
 
     def check(self) -> None:
-        """Before any work: the options, the execution providers and both files' interfaces."""
+        """Before any work: the execution providers and both files' interfaces."""
         from ..estimators.mobilesam import ImageEncoder, OfficialDecoder
         from ..estimators.onnx_runtime import resolve_providers
 
-        self._options()
-        providers = resolve_providers(self.params.get("providers", "cpu"))
-        ImageEncoder(self.params["encoder"], providers, 1)
-        OfficialDecoder(self.params["decoder"], providers, 1)
+        providers = resolve_providers(self.p.providers)
+        ImageEncoder(self.p.encoder, providers, 1)
+        OfficialDecoder(self.p.decoder, providers, 1)
 
     def warm(self) -> None:
         self.segmenter()
@@ -48,10 +47,7 @@ class MobileSAMObjects(MaskObjects):
         if getattr(self, "_segmenter", None) is None:
             from ..estimators.mobilesam import MobileSamSegmenter
 
-            self._segmenter = MobileSamSegmenter(
-                self.params["encoder"], self.params["decoder"], self._options(),
-                providers=self.params.get("providers", "cpu"), threads=int(self.params.get("threads", 2)),
-                decoder_mode=self.params.get("decoder_mode", "fast"))
+            self._segmenter = MobileSamSegmenter(self.p.encoder, self.p.decoder, self.p)
         return self._segmenter
 
     def __getstate__(self):  # sessions stay in the process that made them (dask workers rebuild theirs)
