@@ -12,7 +12,7 @@ DATASET ?= synthetic
 DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 
-.PHONY: setup demo test prep bench-synth bench-prep bench-train bench-objects clean
+.PHONY: setup demo test prep schema bench-synth bench-prep bench-train bench-objects clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -30,6 +30,10 @@ test: setup
 ## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr]
 prep: setup
 	$(CLI) run --pipeline pipelines/$(DATASET).yaml --data $(DATA) --out $(OUT)
+
+## make schema: regenerate schemas/pipeline.schema.json from the backends' Params dataclasses.
+schema: setup
+	$(PY) -m ga3ce_prep.pipeline.schema --write
 
 bench-synth: setup
 	$(PY) benchmarks/bench_synth.py

@@ -50,6 +50,19 @@ class FrameRef:
     keypoints_2d: np.ndarray | None = None  # (25, 3) OpenPose BODY_25 u, v, confidence (GAFA)
 
 
+@dataclass
+class DepthMap:
+    """One frame's depth as the geometry stages use it.
+
+    depth: (H, W) float32 metres, completed (holes filled), 0 = still unknown.
+    valid: (H, W) bool, the raw sensor validity: the pixels whose depth was measured. Object
+    medians and the head position use only these; the completed depth serves the segmenter.
+    """
+
+    depth: np.ndarray
+    valid: np.ndarray
+
+
 def load_rgb(path: str | Path) -> np.ndarray:
     """Read an image file as (H, W, 3) uint8 RGB. Raises FrameError naming the file if it is
     missing, unreadable or truncated (Pillow refuses truncated JPEG/PNG data)."""

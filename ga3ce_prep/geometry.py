@@ -165,15 +165,14 @@ def object_positions(depth: np.ndarray, K: np.ndarray, masks: np.ndarray,
                            index=index.astype(np.int64), n_dropped=n_dropped)
 
 
-def head_position(depth: np.ndarray, K: np.ndarray, head_box: np.ndarray,
-                  valid: np.ndarray | None = None,
-                  window_fracs: tuple[float, ...] = (0.2, 0.5, 1.0), min_points: int = 3) -> np.ndarray:
+def head_position(depth: np.ndarray, K: np.ndarray, head_box: np.ndarray, valid: np.ndarray | None = None, *,
+                  window_fracs: tuple[float, ...], min_points: int) -> np.ndarray:
     """t_object: the head box centre back-projected at the median valid depth of a small window.
 
     The window is a square of side window_frac * min(box w, box h) (at least 3 px) around the box
     centre, clipped to the image; if it has fewer than `min_points` valid pixels the next, larger
     fraction is tried. Returns (3,) float32 metres. Raises FrameError when the box is outside the
-    image or no window has valid depth.
+    image or no window has valid depth. The head stage's defaults: `stages.head.DepthHead.Params`.
     """
     H, W = depth.shape
     x1, y1, x2, y2 = (float(c) for c in head_box)

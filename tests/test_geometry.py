@@ -4,6 +4,7 @@ import pytest
 from ga3ce_prep.errors import FrameError
 from ga3ce_prep.geometry import (angular_error_deg, back_project, depth_to_points, head_position,
                                  object_positions, project, scale_intrinsics)
+from ga3ce_prep.stages.head import DepthHead
 
 K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
 
@@ -81,18 +82,20 @@ def test_object_positions_even_count_median_is_mean_of_middle_pair():
 
 
 def test_head_position_uses_window_median_and_falls_back():
+    w = DepthHead.Params()
+    win = dict(window_fracs=w.window_fracs, min_points=w.min_points)  # the head stage's defaults
     depth = np.full((100, 100), 3.0, np.float32)
     depth[40:60, 40:60] = 2.0
-    p = head_position(depth, K, np.array([30, 30, 70, 70]))
+    p = head_position(depth, K, np.array([30, 30, 70, 70]), **win)
     np.testing.assert_allclose(p, back_project(50.0, 50.0, 2.0, K), atol=1e-6)
     holes = depth.copy()
     holes[45:55, 45:55] = 0  # centre window empty -> the 0.5 window is used
-    p2 = head_position(holes, K, np.array([30, 30, 70, 70]))
+    p2 = head_position(holes, K, np.array([30, 30, 70, 70]), **win)
     assert p2[2] == pytest.approx(2.0)
     with pytest.raises(FrameError, match="no valid depth"):
-        head_position(np.zeros_like(depth), K, np.array([30, 30, 70, 70]))
+        head_position(np.zeros_like(depth), K, np.array([30, 30, 70, 70]), **win)
     with pytest.raises(FrameError, match="outside"):
-        head_position(depth, K, np.array([200, 30, 240, 70]))
+        head_position(depth, K, np.array([200, 30, 240, 70]), **win)
 
 
 def test_object_positions_with_no_kept_mask_is_empty():

@@ -184,10 +184,10 @@ def test_scripted_decoder_on_the_synthetic_worlds_instance_masks(synth_world, tm
     are the world's exact instance masks, so segment-everything must return them."""
     from ga3ce_prep.datasets import open_dataset
     from ga3ce_prep.frames import load_rgb
-    from ga3ce_prep.stages.truth import truth_record
+    from ga3ce_prep.stages.truth import truth_frame
 
     frame = next(iter(open_dataset("gfie", synth_world)))
-    inst = np.asarray(truth_record(synth_world / "truth.h5", frame.id).instance).astype(np.int32) + 1  # 0 = none
+    inst = np.asarray(truth_frame(synth_world / "truth.h5", frame.id).instance).astype(np.int32) + 1  # 0 = none
     path = tmp_path / "dec_world.onnx"
     onnx.save(scripted.scripted_decoder(inst), path)
     enc = tmp_path / "enc.onnx"

@@ -5,7 +5,8 @@ import pytest
 from ga3ce_prep.errors import FrameError
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.stages.base import BackendContext
-from ga3ce_prep.stages.depth import SensorDepth, complete_depth
+from ga3ce_prep.estimators.depth_completion import CompletionParams, complete_depth
+from ga3ce_prep.stages.depth import SensorDepth
 
 H, W = 120, 160
 
@@ -42,7 +43,7 @@ def test_completion_fills_holes_near_truth_and_keeps_measured_pixels():
 
 def test_completion_without_large_hole_fallback_leaves_the_big_hole():
     raw = _holes(np.random.default_rng(1), _plane())
-    dm = complete_depth(raw, large_holes="none")
+    dm = complete_depth(raw, CompletionParams(large_holes="none"))
     assert (dm.depth[70:90, 105:135] == 0).all()
     assert (dm.depth[:40] > 0).all()
 
@@ -52,13 +53,13 @@ def test_completion_prefers_the_nearer_surface_at_edges():
     d[:, :80] = 1.0  # near surface on the left
     raw = d.copy()
     raw[:, 78:83] = 0  # hole across the edge
-    dm = complete_depth(raw, blur="none")
+    dm = complete_depth(raw, CompletionParams(blur="none"))
     assert np.all(dm.depth[:, 78:80] == 1.0)  # dilation of the inverted depth takes the near value
 
 
 def test_range_limits_and_all_invalid():
     raw = np.full((H, W), 12.0, np.float32)  # beyond max_depth
-    dm = complete_depth(raw, max_depth=10.0)
+    dm = complete_depth(raw, CompletionParams(max_depth=10.0))
     assert not dm.valid.any() and not dm.depth.any()
 
 

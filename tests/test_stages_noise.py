@@ -3,7 +3,7 @@ import numpy as np
 
 from ga3ce_prep.geometry import angular_error_deg, normalize
 from ga3ce_prep.skeleton import HEAD_JOINTS
-from ga3ce_prep.stages.noise import frame_rng, noisy_pose, noisy_view, rice_sigma
+from ga3ce_prep.stages.oracle_noise import frame_rng, noisy_pose, noisy_view, rice_sigma
 
 
 def _directions(n, max_offset_deg, seed=0):

@@ -1,5 +1,6 @@
-"""Pipeline files (`pipelines/<name>.yaml`): load, validate against schemas/pipeline.schema.json,
-fill in defaults, resolve file parameters, and check everything a run needs before any work.
+"""Pipeline files (`pipelines/<name>.yaml`): load, validate against schemas/pipeline.schema.json
+(generated from the backends' `Params` dataclasses: pipeline/schema.py), fill in defaults, resolve
+file parameters, and check everything a run needs before any work.
 
 Every error names the pipeline key at fault (e.g. `stages.view.params.mean_error_deg`) and the fix.
 File parameters ("x-file" in the schema) may use `{data}` for the dataset root (`--data`); other
@@ -19,8 +20,8 @@ import yaml
 from ..errors import ConfigError, ModelFileError
 from ..stages import STAGES, backend_class
 from ..stages.base import Backend, BackendContext
+from .schema import SCHEMA_FILE
 
-SCHEMA_FILE = Path(__file__).resolve().parent.parent.parent / "schemas" / "pipeline.schema.json"
 PIPELINES_DIR = Path(__file__).resolve().parent.parent.parent / "pipelines"
 
 

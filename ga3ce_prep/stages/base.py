@@ -1,10 +1,10 @@
 """The stage contract: what each stage returns per frame, and the backend base classes.
 
-A stage is a pure function of one frame and its upstream outputs (DESIGN.md §1). Each stage has
-named backends, chosen in the pipeline file; a backend is a small class with its validated
-parameters (defaults filled in from schemas/pipeline.schema.json) and one per-frame method:
+A stage is a pure function of one frame and its upstream outputs (docs/pipeline.md). Each stage
+has named backends, chosen in the pipeline file; a backend is a small class with one per-frame
+method and its parameters as a typed dataclass:
 
-    input    CheckInput.check(frame)                          -> None   (raises FrameError)
+    input    CheckInputBackend.check_frame(frame)              -> None   (raises FrameError)
     depth    DepthBackend.depth(frame)                        -> DepthMap
     objects  ObjectsBackend.objects(frame, depth: DepthMap)   -> FrameObjects
     head     HeadBackend.head(frame, depth: DepthMap)         -> (3,) float32 t_object, metres
@@ -15,11 +15,16 @@ A per-frame problem raises FrameError (or any exception): the pipeline turns it 
 record (stage, error class, message) and goes on. Units: metres; camera frame x right, y down,
 z forward.
 
-Adding a backend (e.g. `objects/mobilesam`): write the class here-alike in the stage's module,
-register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`, and add its parameter
-schema as `$defs/<stage>.<name>` in schemas/pipeline.schema.json (mark model-file parameters with
-"x-file": "model" and an "x-hint" saying how to make the file). Bump `version` whenever the
-backend's output for the same parameters changes, so stale cache entries are not reused.
+Adding a backend (e.g. `depth/onnx`):
+1. In the stage's module (or a module of its own), a class with `name`, a nested `Params`
+   dataclass (`@dataclass(frozen=True, kw_only=True)`, one field per line: type, default,
+   `param(..., minimum=...)` for JSON Schema limits, `param(file="model", hint=...)` for model
+   files, and its unit and reason in a trailing comment; inherit shared groups such as
+   `RuntimeParams` or `TruthParams`), and its per-frame method reading `self.p.<name>`.
+2. Register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`.
+3. `make schema` regenerates schemas/pipeline.schema.json from the dataclasses (a test fails
+   until it is current). Bump `version` whenever the backend's output for the same parameters
+   changes, so stale cache entries are not reused.
 """
 from __future__ import annotations
 
@@ -29,20 +34,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..frames import FrameRef
-
-
-@dataclass
-class DepthMap:
-    """One frame's depth as the geometry stages use it.
-
-    depth: (H, W) float32 metres, completed (holes filled), 0 = still unknown.
-    valid: (H, W) bool, the raw sensor validity: the pixels whose depth was measured. Object
-    medians and the head position use only these; the completed depth serves the segmenter.
-    """
-
-    depth: np.ndarray
-    valid: np.ndarray
+from ..frames import DepthMap, FrameRef
+from ..params import from_dict
 
 
 @dataclass
@@ -71,20 +64,23 @@ class BackendContext:
     data_root: Path
 
 
+@dataclass(frozen=True, kw_only=True)
+class NoParams:
+    """The parameters of a backend that has none."""
+
+
 class Backend:
-    """Base of every backend. `params` are validated, with defaults filled in; parameters naming
-    files ("x-file" in the schema) are already resolved to absolute paths."""
+    """Base of every backend. `self.p` is an instance of the backend's `Params` dataclass; file
+    parameters are already resolved to absolute paths by the pipeline loader."""
 
     stage: ClassVar[str] = ""
     name: ClassVar[str] = ""
     version: ClassVar[str] = "1"  # part of the cache key: bump when outputs change for the same params
+    Params: ClassVar[type] = NoParams
 
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
-        self.params = dict(params)
+        self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")
         self.ctx = ctx
-        if hasattr(type(self), "Params"):
-            from ..params import from_dict
-            self.p = from_dict(self.Params, self.params, f"stages.{self.stage}.params")
 
     def check(self) -> None:
         """Validate once before any work (files readable, keys present); raise ConfigError or

@@ -3,10 +3,13 @@ small window (`geometry.head_position`). No measured depth near the head (or a h
 the image) raises FrameError, which drops the frame."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..frames import FrameRef
 from ..geometry import head_position
+from ..params import param
 from .base import DepthMap, HeadBackend
 
 
@@ -16,7 +19,11 @@ class DepthHead(HeadBackend):
 
     name = "depth"
 
+    @dataclass(frozen=True, kw_only=True)
+    class Params:
+        window_fracs: tuple[float, ...] = param((0.2, 0.5, 1.0), minItems=1, items={"exclusiveMinimum": 0})  # window sides as fractions of the box's shorter side, tried in order
+        min_points: int = param(3, minimum=1)  # measured pixels a window needs
+
     def head(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
         return head_position(depth.depth, frame.K, frame.head_box, valid=depth.valid,
-                             window_fracs=tuple(self.params["window_fracs"]),
-                             min_points=int(self.params["min_points"]))
+                             window_fracs=self.p.window_fracs, min_points=self.p.min_points)

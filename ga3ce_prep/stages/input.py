@@ -6,6 +6,8 @@ decodable (a full decode, so truncated JPEG/PNG files are caught) at the size th
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..errors import FrameError
@@ -14,10 +16,13 @@ from .base import CheckInputBackend
 
 
 class CheckInput(CheckInputBackend):
-    """`decode_image`: decode every image (catches truncated files; about 3 ms per 640x480 JPEG);
-    off: only check that the file exists."""
+    """Per-frame checks of K, the head box and the image file."""
 
     name = "check"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params:
+        decode_image: bool = True  # decode every image to catch truncated files (about 3 ms per 640x480 JPEG); false: only check it exists
 
     def check_frame(self, frame: FrameRef) -> None:
         K = np.asarray(frame.K, np.float64)
@@ -27,7 +32,7 @@ class CheckInput(CheckInputBackend):
         if not np.all(np.isfinite(frame.head_box)):
             raise FrameError(f"head box of frame {frame.id} is not finite ({frame.head_box.tolist()}); "
                              "check the annotation row")
-        if self.params["decode_image"]:
+        if self.p.decode_image:
             rgb = load_rgb(frame.image_path)
             H, W = rgb.shape[:2]
             fw, fh = frame.image_size

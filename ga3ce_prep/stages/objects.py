@@ -5,33 +5,24 @@ Every backend is a `MaskObjects`: it only says how to get masks (`masks`); the s
 per-axis median of its *measured* points (`geometry.object_positions`, vectorised); masks with
 fewer than `min_points` measured points are dropped and counted.
 
-Backends: `geometric` (Open3D planes + DBSCAN, weight-free, stages/geometric.py) and `oracle` (the
-synthetic world's instance masks). Adding `objects/mobilesam` is one small class:
-
-    class MobileSAMObjects(MaskObjects):
-        name = "mobilesam"
-        def masks(self, frame, depth):
-            rgb = load_rgb(frame.image_path)
-            m, iou = segmenter(rgb, out_size=depth.depth.shape)   # (M, H, W) bool, (M,) float
-            return m, iou                                         # scores: predicted IoU
-
-plus its registry line in `ga3ce_prep.stages.BACKENDS` and its parameter schema (model files
-marked "x-file": "model") in schemas/pipeline.schema.json.
+Backends: `geometric` (Open3D planes + DBSCAN, weight-free, estimators/geometric.py), `oracle` (the
+synthetic world's instance masks) and `mobilesam` (segment-everything, stages/objects_mobilesam.py).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 
+from ..estimators.geometric import GeometricParams, segment_geometric
 from ..frames import FrameRef
 from ..geometry import object_positions
 from ..params import param
 from .base import DepthMap, FrameObjects, ObjectsBackend
-from .geometric import GeometricParams, segment_geometric
-from .noise import frame_rng
-from .truth import truth_record
+from .oracle_noise import frame_rng
+from .truth import TruthParams, check_truth_file, truth_frame, truth_object_kinds
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -59,7 +50,7 @@ class MaskObjects(ObjectsBackend):
             else:
                 masks = cv2.resize(masks.astype(np.int32), (W, H), interpolation=cv2.INTER_NEAREST)
         pos = object_positions(depth.depth, frame.K, masks, valid=depth.valid,
-                               min_points=int(self.params["min_points"]))
+                               min_points=self.p.min_points)
         if scores is None:
             score = pos.n_valid / np.maximum(pos.area, 1)
         else:
@@ -74,13 +65,16 @@ class GeometricObjects(MaskObjects):
 
     name = "geometric"
 
+    @dataclass(frozen=True, kw_only=True)
+    class Params(MaskParams, GeometricParams):
+        seed: int = 0  # RANSAC seed (combined with the frame id)
+
     def warm(self) -> None:
         import open3d  # noqa: F401  (about 1.5 s the first time in a process)
 
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, None]:
-        p = GeometricParams(**{k: v for k, v in self.params.items() if k in GeometricParams.__dataclass_fields__})
-        seed = int(frame_rng(self.params["seed"], "objects/geometric", frame.id).integers(0, 2**31 - 1))
-        return segment_geometric(depth.depth, frame.K, p, seed=seed, head_box=frame.head_box), None
+        seed = int(frame_rng(self.p.seed, "objects/geometric", frame.id).integers(0, 2**31 - 1))
+        return segment_geometric(depth.depth, frame.K, self.p, seed=seed, head_box=frame.head_box), None
 
 
 class OracleObjects(MaskObjects):
@@ -89,16 +83,21 @@ class OracleObjects(MaskObjects):
 
     name = "oracle"
 
+    @dataclass(frozen=True, kw_only=True)
+    class Params(MaskParams, TruthParams):
+        kinds: tuple[Literal["object", "furniture", "structure", "person"], ...] = param(
+            ("object", "furniture"), minItems=1, uniqueItems=True)  # truth instance kinds kept as objects
+
     def check(self) -> None:
-        truth_record.check(self.params["truth"])
+        check_truth_file(self.p.truth)
 
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
-        rec = truth_record(self.params["truth"], frame.id)
+        rec = truth_frame(self.p.truth, frame.id)
         inst = np.asarray(rec.instance)
-        names = truth_record.object_kinds(self.params["truth"])
+        names = truth_object_kinds(self.p.truth)
         ids = np.asarray(rec.objects.instance, np.int64)
         kinds = np.array([names[k] for k in np.asarray(rec.objects.kind, np.int64)], dtype=str)
-        keep_ids = ids[np.isin(kinds, list(self.params["kinds"]))]
+        keep_ids = ids[np.isin(kinds, list(self.p.kinds))]
         n = int(max(inst.max(initial=-1), ids.max(initial=-1))) + 1
         lut = np.full(n + 1, -1, np.int32)  # lut[-1] (= lut[n]) stays -1: "no instance" maps to -1
         lut[keep_ids] = keep_ids

@@ -3,19 +3,23 @@ estimate). A failure drops the frame: GA3CE has nothing to refine without v.
 
 Backends: `precomputed` (stages/precomputed.py layout) and `oracle` (the synthetic truth gaze,
 optionally pulled toward the head direction, plus noise calibrated to a mean angular error:
-stages/noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees).
+stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import FrameError
 from ..frames import FrameRef
 from ..geometry import normalize
+from ..params import param
 from .base import ViewBackend
-from .noise import frame_rng, noisy_view
+from .oracle_noise import frame_rng, noisy_view
 from .precomputed import precomputed_table
-from .truth import truth_record
+from .truth import TruthParams, check_truth_file, truth_frame
 
 
 class PrecomputedView(ViewBackend):
@@ -23,14 +27,21 @@ class PrecomputedView(ViewBackend):
 
     name = "precomputed"
 
+    @dataclass(frozen=True, kw_only=True)
+    class Params:
+        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, view)")  # HDF5/npz: frame_id (N,) str, view (N, 3)
+
+    def _table(self):
+        return precomputed_table(self.p.file, "view", (3,), "stages.view.params.file")
+
     def check(self) -> None:
-        precomputed_table(self.params["file"], "view", (3,), "stages.view.params.file")
+        self._table()
 
     def view(self, frame: FrameRef) -> np.ndarray:
-        v = precomputed_table(self.params["file"], "view", (3,), "stages.view.params.file").get(frame.id)
+        v = self._table().get(frame.id)
         n = float(np.linalg.norm(v))
         if not np.isfinite(n) or n < 1e-6:
-            raise FrameError(f"view of frame {frame.id} in {self.params['file']} is {v.tolist()}, not a direction")
+            raise FrameError(f"view of frame {frame.id} in {self.p.file} is {v.tolist()}, not a direction")
         return (v / n).astype(np.float32)
 
 
@@ -40,15 +51,21 @@ class OracleView(ViewBackend):
 
     name = "oracle"
 
+    @dataclass(frozen=True, kw_only=True)
+    class Params(TruthParams):
+        seed: int = 0  # noise seed (combined with the frame id)
+        mean_error_deg: float = param(20.0, minimum=0, maximum=90)  # mean angle between v and the truth gaze, degrees
+        head_weight: float = param(0.0, minimum=0, maximum=1)  # pull of v toward the truth head direction before the noise (0: none, 1: centred on it)
+
     def check(self) -> None:
-        truth_record.check(self.params["truth"])
+        check_truth_file(self.p.truth)
 
     def view(self, frame: FrameRef) -> np.ndarray:
-        p = self.params
-        rec = truth_record(p["truth"], frame.id, maps=False)
+        p = self.p
+        rec = truth_frame(p.truth, frame.id, maps=False)
         gaze = np.asarray(rec.gaze, np.float64)
         if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
             raise FrameError(f"truth gaze of frame {frame.id} is not a direction")
         head = getattr(rec, "head_dir", None)
         return noisy_view(normalize(gaze), None if head is None else np.asarray(head, np.float64),
-                          frame_rng(p["seed"], "view/oracle", frame.id), p["mean_error_deg"], p["head_weight"])
+                          frame_rng(p.seed, "view/oracle", frame.id), p.mean_error_deg, p.head_weight)

@@ -29,33 +29,35 @@ thread scheduling, which would break identical resumes. Open3D's DBSCAN is repro
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from ..geometry import back_project
+from ..params import param
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True)
 class GeometricParams:
-    """Parameters of `segment_geometric` (metres, pixels); defaults in schemas/pipeline.schema.json."""
+    """Parameters of `segment_geometric` (the steps of the module docstring)."""
 
-    stride: int = 4
-    max_planes: int = 4
-    plane_distance: float = 0.03
-    plane_band: float = 0.04
-    band_frac: float = 0.7
-    noise_ref_depth: float = 2.5
-    smooth: int = 5
-    plane_iterations: int = 200
-    plane_subsample: int = 4
-    min_plane_frac: float = 0.08
-    keep_planes: bool = True
-    cluster_eps: float = 0.06
-    cluster_min_points: int = 5
-    min_segment_points: int = 6
-    depth_tol: float = 0.05
-    drop_subject: bool = True
-    max_range: float = 8.0
+    stride: int = param(4, minimum=1)  # pixels between sampled points (640x480 at 4: about 19k points)
+    smooth: Literal[1, 3, 5] = 5  # median filter size on the depth before sampling (1: none)
+    max_planes: int = param(4, minimum=0)  # at most this many RANSAC planes
+    plane_distance: float = param(0.03, exclusiveMinimum=0)  # metres, RANSAC inlier distance
+    plane_band: float = param(0.04, exclusiveMinimum=0)  # metres; free points this near a found plane leave the pool (its noisy band)
+    band_frac: float = param(0.7, minimum=0, maximum=1)  # a cluster with more than this fraction of its points in a plane's band is that plane's noise and is dropped
+    noise_ref_depth: float = param(2.5, exclusiveMinimum=0)  # metres; plane tolerances grow as (z / noise_ref_depth)^2 beyond it (Kinect-style noise)
+    plane_iterations: int = param(200, minimum=1)  # RANSAC iterations per plane
+    plane_subsample: int = param(4, minimum=1)  # RANSAC runs on every n-th free point (speed); all points are then assigned
+    min_plane_frac: float = param(0.08, exclusiveMinimum=0, maximum=1)  # a plane needs this fraction of the points
+    keep_planes: bool = True  # planes (split into connected pieces) are segments too; false: only removed
+    cluster_eps: float = param(0.06, exclusiveMinimum=0)  # metres, DBSCAN neighbourhood
+    cluster_min_points: int = param(5, minimum=1)  # DBSCAN core-point neighbours
+    min_segment_points: int = param(6, minimum=1)  # segments with fewer grid points are dropped
+    depth_tol: float = param(0.05, exclusiveMinimum=0)  # metres; a pixel keeps its grid point's label only within this depth
+    drop_subject: bool = True  # remove the segment under the head box centre (the subject)
+    max_range: float = param(8.0, exclusiveMinimum=0)  # metres; farther points are ignored
 
 
 def _dbscan(o3d, pts: np.ndarray, eps: float, min_points: int) -> np.ndarray:
