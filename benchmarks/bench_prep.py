@@ -64,7 +64,9 @@ def geometry_per_core(data: Path, n: int) -> dict:
     from ga3ce_prep.datasets import open_dataset
     from ga3ce_prep.frames import load_depth
     from ga3ce_prep.geometry import head_position, object_positions
-    from ga3ce_prep.stages.depth import complete_depth
+    from ga3ce_prep.estimators.depth_completion import complete_depth
+    from ga3ce_prep.stages.head import DepthHead
+    from ga3ce_prep.stages.objects import MaskParams
     from ga3ce_prep.synthetic.truth import TruthReader
 
     cv2.setNumThreads(1)
@@ -76,6 +78,7 @@ def geometry_per_core(data: Path, n: int) -> dict:
         rec = truth.get(f.id)
         keep = rec.objects.instance[np.isin(np.array(kinds)[rec.objects.kind], ["object", "furniture"])]
         masks.append(np.where(np.isin(rec.instance, keep), rec.instance, -1).astype(np.int16))
+    head_p, min_points = DepthHead.Params(), MaskParams().min_points  # the stages' defaults
     t = {"load": 0.0, "complete": 0.0, "medians": 0.0, "head": 0.0}
     n_obj = 0
     for rep in range(2):  # the first pass warms caches; the second is timed
@@ -85,10 +88,11 @@ def geometry_per_core(data: Path, n: int) -> dict:
             t1 = time.perf_counter()
             dm = complete_depth(raw)
             t2 = time.perf_counter()
-            pos = object_positions(dm.depth, f.K, m, valid=dm.valid)
+            pos = object_positions(dm.depth, f.K, m, valid=dm.valid, min_points=min_points)
             t3 = time.perf_counter()
             try:
-                head_position(dm.depth, f.K, f.head_box, valid=dm.valid)
+                head_position(dm.depth, f.K, f.head_box, valid=dm.valid, window_fracs=head_p.window_fracs,
+                              min_points=head_p.min_points)
             except Exception:  # noqa: BLE001 - a frame without depth at the head still costs its time
                 pass
             t4 = time.perf_counter()

@@ -132,7 +132,7 @@ def _median_sorted_groups(values: np.ndarray, starts: np.ndarray, counts: np.nda
 
 
 def object_positions(depth: np.ndarray, K: np.ndarray, masks: np.ndarray,
-                     valid: np.ndarray | None = None, min_points: int = 10) -> ObjectPositions:
+                     valid: np.ndarray | None = None, *, min_points: int) -> ObjectPositions:
     """GA3CE's object points: back-project each mask with depth and K and keep the per-axis median
     of its valid 3D points.
 

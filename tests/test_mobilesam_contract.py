@@ -132,7 +132,7 @@ def test_segment_everything_end_to_end_with_scripted_decoder(files, dec):
     np.testing.assert_allclose(small.areas, r.areas / 4, rtol=0.03)
     depth = np.full((240, 320), 2.0, np.float32)
     K = np.array([[250.0, 0, 160], [0, 250.0, 120], [0, 0, 1]])
-    pos = object_positions(depth, K, small.masks)
+    pos = object_positions(depth, K, small.masks, min_points=10)
     assert len(pos.xyz) == 3 and np.allclose(pos.xyz[:, 2], 2.0)
 
 
