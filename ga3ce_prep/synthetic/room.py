@@ -21,6 +21,18 @@ SHAPE_CODES: dict[str, int] = {"box": 0, "cylinder": 1, "sphere": 2, "cone": 3, 
                                "octahedron": 6, "table": 10, "shelf": 11, "cabinet": 12, "chair": 13,
                                "floor": 20, "wall": 21, "ceiling": 22, "person": 30}
 GRID = 0.05  # free-space grid cell (m)
+# The schedule of an object's placement tries: around its cluster first, widening the cluster
+# every WIDEN_EVERY-th try while crowded; then every MOVE_EVERY-th try on another surface it fits
+# on; from try SHRINK_AT a smaller object; after PLACE_TRIES tries it is left out.
+PLACE_TRIES = 60
+WIDEN_UNTIL, WIDEN_EVERY, WIDEN_FACTOR = 20, 4, 1.3
+MOVE_EVERY = 5
+SHRINK_AT, SHRINK_FACTOR = 45, 0.7
+# Chairs (metres): seat side, thickness, leg width, back-rest height above the seat; footprint and
+# clearance radii; distance of a sitter's chair from its table edge; seat heights drawn uniformly.
+CHAIR_SEAT, CHAIR_SEAT_THICKNESS, CHAIR_LEG, CHAIR_BACK = 0.44, 0.04, 0.04, 0.45
+CHAIR_FOOTPRINT, CHAIR_CLEARANCE, CHAIR_TABLE_OFFSET = 0.32, 0.33, 0.35
+SEAT_HEIGHT = (0.42, 0.48)
 
 
 @dataclass
@@ -123,11 +135,24 @@ class _Builder:
             self.add("structure", "ceiling", q, np.array([0.85, 0.85, 0.82]) * rng.uniform(0.85, 1.0), max(sx, sy))
 
     # --- furniture ---------------------------------------------------------------------------
-    def _fits(self, x0, x1, y0, y1, sx, sy, margin=0.1) -> bool:
+    def _fits(self, x0, x1, y0, y1, sx, sy, margin=0.1, ignore=()) -> bool:
+        """Whether the rectangle lies in the room and clear of every footprint but `ignore`."""
         if x0 < 0 or y0 < 0 or x1 > sx or y1 > sy:
             return False
         return all(x1 + margin <= a0 or a1 + margin <= x0 or y1 + margin <= b0 or b1 + margin <= y0
-                   for a0, a1, b0, b1 in self.footprints)
+                   for a0, a1, b0, b1 in self.footprints if (a0, a1, b0, b1) not in ignore)
+
+    @property
+    def floor_size(self) -> tuple[float, float]:
+        """The room's (x, y) extent as its floor mesh has it (float32 vertices)."""
+        floor = self.instances[0].vertices
+        return float(floor[:, 0].max()), float(floor[:, 1].max())
+
+    def fits_beside_own_table(self, s: Surface, x: float, y: float, r: float) -> bool:
+        """Whether a chair of radius r at (x, y) is clear of every footprint but its own table's
+        (a chair may tuck under its table)."""
+        own = [f for f in self.footprints if abs(f[0] - (s.x0 - 0.02)) < 1e-6 and abs(f[2] - (s.y0 - 0.02)) < 1e-6]
+        return self._fits(x - r, x + r, y - r, y + r, *self.floor_size, margin=0.0, ignore=own)
 
     def _place_rect(self, w: float, d: float, sx: float, sy: float, against_wall: bool):
         """Find a footprint (x0, x1, y0, y1) and the yaw its front faces, or None."""
@@ -214,18 +239,18 @@ class _Builder:
 
     def chair_at(self, cx: float, cy: float, yaw: float, seat_h: float, col) -> None:
         """A chair whose seat centre is (cx, cy), facing yaw (the sitter looks along yaw)."""
-        s, t = 0.44, 0.04
+        s, t, leg = CHAIR_SEAT, CHAIR_SEAT_THICKNESS, CHAIR_LEG
         R = meshes.rot_z(yaw)
         local = [((-s / 2, -s / 2, seat_h - t), (s / 2, s / 2, seat_h))]
-        for lx, ly in ((-s / 2, -s / 2), (s / 2 - 0.04, -s / 2), (-s / 2, s / 2 - 0.04), (s / 2 - 0.04, s / 2 - 0.04)):
-            local.append(((lx, ly, 0), (lx + 0.04, ly + 0.04, seat_h - t)))
-        local.append(((-s / 2 - 0.03, -s / 2, seat_h), (-s / 2, s / 2, seat_h + 0.45)))  # back rest behind
+        for lx, ly in ((-s / 2, -s / 2), (s / 2 - leg, -s / 2), (-s / 2, s / 2 - leg), (s / 2 - leg, s / 2 - leg)):
+            local.append(((lx, ly, 0), (lx + leg, ly + leg, seat_h - t)))
+        local.append(((-s / 2 - 0.03, -s / 2, seat_h), (-s / 2, s / 2, seat_h + CHAIR_BACK)))  # back rest behind
         parts = []
         for lo, hi in local:
             v, f = meshes.box(lo, hi)
             parts.append(((v @ R.T.astype(np.float32)) + np.array([cx, cy, 0], np.float32), f))
-        self.add("furniture", "chair", meshes.merge(parts), col, seat_h + 0.45)
-        r = 0.32
+        self.add("furniture", "chair", meshes.merge(parts), col, seat_h + CHAIR_BACK)
+        r = CHAIR_FOOTPRINT
         self.footprints.append((cx - r, cx + r, cy - r, cy + r))
 
     # --- objects -----------------------------------------------------------------------------
@@ -257,31 +282,18 @@ class _Builder:
             s, c, spread = centres[ci]
             shape = str(rng.choice(list(cfg.shapes)))
             L = float(np.exp(rng.uniform(lo, hi)))
-            for attempt in range(60):
-                if attempt < 20 and attempt % 4 == 3:  # crowded: widen the cluster
-                    spread *= 1.3
-                if attempt >= 20 and attempt % 5 == 0:  # the cluster is full: try any surface it fits on
-                    r_min = 0.5 * L * (0.5 if shape in ("box", "ellipsoid", "cylinder", "cone") else 1.0)
-                    fit = [x for x in surfs + [floor] if min(x.x1 - x.x0, x.y1 - x.y0) >= 2 * r_min]
-                    if fit:
-                        a = np.array([x.area for x in fit])
-                        s = fit[int(rng.choice(len(fit), p=a / a.sum()))]
+            for attempt in range(PLACE_TRIES):
+                if attempt < WIDEN_UNTIL and attempt % WIDEN_EVERY == WIDEN_EVERY - 1:  # crowded: widen the cluster
+                    spread *= WIDEN_FACTOR
+                if attempt >= WIDEN_UNTIL and attempt % MOVE_EVERY == 0:  # the cluster is full: another surface
+                    s = self._fitting_surface(surfs + [floor], shape, L) or s
                     c, spread = np.array([0.5 * (s.x0 + s.x1), 0.5 * (s.y0 + s.y1)]), 10.0
-                if attempt == 45:  # nowhere: a smaller one
-                    L = max(cfg.size[0], 0.7 * L)
-                dims = _object_dims(shape, L, rng)
-                if dims[2] > s.headroom:
-                    dims = dims * (s.headroom / dims[2])
-                r = 0.5 * float(np.hypot(dims[0], dims[1]))
-                if 2 * r > min(s.x1 - s.x0, s.y1 - s.y0):
-                    continue
-                p = c + rng.normal(0, spread, 2)
-                p = np.clip(p, [s.x0 + r, s.y0 + r], [s.x1 - r, s.y1 - r])
-                if any(o is s and np.hypot(*(p - q)) < r + rr + 0.01 for o, q, rr in placed):
-                    continue
-                if s is floor and _hits_grid(occupied, p, r + 0.05):
-                    continue
-                break
+                if attempt == SHRINK_AT:  # nowhere: a smaller one
+                    L = max(cfg.size[0], SHRINK_FACTOR * L)
+                spot = self._try_spot(s, c, spread, shape, L, placed, occupied, floor)
+                if spot is not None:
+                    p, r, dims = spot
+                    break
             else:
                 continue
             placed.append((s, p, r))
@@ -294,6 +306,34 @@ class _Builder:
             col = _colour(rng, (0.0, 0.1), (0.01, 0.05)) if dark else _colour(rng)
             self.add("object", shape, mesh, col, float(max(dims)), dark=dark, shiny=shiny)
 
+
+    def _fitting_surface(self, surfs: list[Surface], shape: str, L: float) -> Surface | None:
+        """A surface wide enough for an object of largest extent L (chosen by area), or None."""
+        r_min = 0.5 * L * (0.5 if shape in ("box", "ellipsoid", "cylinder", "cone") else 1.0)
+        fit = [x for x in surfs if min(x.x1 - x.x0, x.y1 - x.y0) >= 2 * r_min]
+        if not fit:
+            return None
+        a = np.array([x.area for x in fit])
+        return fit[int(self.rng.choice(len(fit), p=a / a.sum()))]
+
+    def _try_spot(self, s: Surface, c: np.ndarray, spread: float, shape: str, L: float,
+                  placed: list[tuple[Surface, np.ndarray, float]], occupied: np.ndarray,
+                  floor: Surface) -> tuple[np.ndarray, float, np.ndarray] | None:
+        """One placement try on surface s around c: (position (2,), footprint radius, dims (3,)), or
+        None when the object does not fit, overlaps a placed one, or stands on occupied floor."""
+        dims = _object_dims(shape, L, self.rng)
+        if dims[2] > s.headroom:
+            dims = dims * (s.headroom / dims[2])
+        r = 0.5 * float(np.hypot(dims[0], dims[1]))
+        if 2 * r > min(s.x1 - s.x0, s.y1 - s.y0):
+            return None
+        p = c + self.rng.normal(0, spread, 2)
+        p = np.clip(p, [s.x0 + r, s.y0 + r], [s.x1 - r, s.y1 - r])
+        if any(o is s and np.hypot(*(p - q)) < r + rr + 0.01 for o, q, rr in placed):
+            return None
+        if s is floor and _hits_grid(occupied, p, r + 0.05):
+            return None
+        return p, r, dims
 
 def _object_dims(shape: str, L: float, rng: np.random.Generator) -> np.ndarray:
     """Template scale (x, y, z) for an object whose largest extent is L."""
@@ -350,13 +390,13 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
         for s, _ in tables:
             cx, cy = 0.5 * (s.x0 + s.x1), 0.5 * (s.y0 + s.y1)
             # try the four sides, long sides first
-            sides = [(cx, s.y0 - 0.35, np.pi / 2), (cx, s.y1 + 0.35, -np.pi / 2),
-                     (s.x0 - 0.35, cy, 0.0), (s.x1 + 0.35, cy, np.pi)]
+            d = CHAIR_TABLE_OFFSET
+            sides = [(cx, s.y0 - d, np.pi / 2), (cx, s.y1 + d, -np.pi / 2), (s.x0 - d, cy, 0.0), (s.x1 + d, cy, np.pi)]
             for sx_, sy_, yaw in sides:
                 x, y = sx_ + rng.uniform(-0.15, 0.15) * (yaw in (np.pi / 2, -np.pi / 2)), sy_
-                r = 0.33
-                if b._fits(x - r, x + r, y - r, y + r, sx, sy, margin=0.0) or _only_touches_table(b, s, x, y, r):
-                    seat_h = float(rng.uniform(0.42, 0.48))
+                r = CHAIR_CLEARANCE
+                if b._fits(x - r, x + r, y - r, y + r, sx, sy, margin=0.0) or b.fits_beside_own_table(s, x, y, r):
+                    seat_h = float(rng.uniform(*SEAT_HEIGHT))
                     b.chair_at(x, y, yaw, seat_h, chair_col)
                     seat = Seat(np.array([x, y]), seat_h, float(yaw))
                     focus = s
@@ -367,7 +407,7 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
         got = b._place_rect(0.5, 0.5, sx, sy, against_wall=False)
         if got is not None:
             (x0, x1, y0, y1), yaw = got
-            b.chair_at(0.5 * (x0 + x1), 0.5 * (y0 + y1), yaw, float(rng.uniform(0.42, 0.48)), chair_col)
+            b.chair_at(0.5 * (x0 + x1), 0.5 * (y0 + y1), yaw, float(rng.uniform(*SEAT_HEIGHT)), chair_col)
     occ = _occupancy(sx, sy, b.footprints)
     b.objects(sx, sy, occ, focus)
     # the person's free space: off furniture and floor objects, 0.3 m from walls and furniture
@@ -384,19 +424,3 @@ def build_room(cfg: SynthConfig, rng: np.random.Generator, sitting: bool = False
     light = np.array([0.5 * np.cos(a), 0.5 * np.sin(a), -1.0])
     return Room(size=np.array([sx, sy, h]), instances=b.instances, surfaces=b.surfaces, free=free,
                 light=light / np.linalg.norm(light), seat=seat)
-
-
-def _only_touches_table(b: _Builder, s: Surface, x: float, y: float, r: float) -> bool:
-    """The chair may tuck under its own table: check against every other footprint."""
-    keep = b.footprints
-    own = [f for f in keep if abs(f[0] - (s.x0 - 0.02)) < 1e-6 and abs(f[2] - (s.y0 - 0.02)) < 1e-6]
-    b.footprints = [f for f in keep if f not in own]
-    try:
-        return b._fits(x - r, x + r, y - r, y + r, *b_size(b), margin=0.0)
-    finally:
-        b.footprints = keep
-
-
-def b_size(b: _Builder) -> tuple[float, float]:
-    floor = b.instances[0].vertices
-    return float(floor[:, 0].max()), float(floor[:, 1].max())
