@@ -1,5 +1,5 @@
 """Benchmark: synthetic world generation speed at 640x480 on one core, per format, and where the
-time goes (`make bench-synth`). Goal: at least 20 frames/s (DESIGN.md, issue 3).
+time goes (`make bench-synth`). Goal: at least 20 frames/s.
 
 One core: OMP/MKL/OpenBLAS threads 1 and Open3D ray casting with nthreads=1 (render.py). Frames
 are camera images (GAFA writes one per camera per time step). Figures are provisional on a shared

@@ -1,5 +1,5 @@
 """The smpl+head_30 skeleton (MeTRAbs/NLF 2023 "28-dataset" models, huge8 joint order) and the
-OpenPose BODY_25 layout GAFA's 2D keypoints use. Facts from research/pose_depth.md §1.
+OpenPose BODY_25 layout GAFA's 2D keypoints use. Where the order comes from: docs/paper.md §2.
 
 Select joints of a real estimator's output by name (`JOINT_NAMES`), never by index: the 2021
 models order the face joints differently.

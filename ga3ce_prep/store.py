@@ -1,4 +1,4 @@
-"""The 3D context store: a plain Zarr v3 group of per-frame arrays (DESIGN.md §2).
+"""The 3D context store: a plain Zarr v3 group of per-frame arrays (docs/store.md).
 
 Layout (N frames, M objects, F failure records)::
 

@@ -1,6 +1,6 @@
 """Classical depth completion (IP-Basic family) for Kinect-style sensor depth.
 
-`complete_depth` follows IP-Basic's `fill_in_fast` (Ku et al. 2018; research/pose_depth.md §4),
+`complete_depth` follows IP-Basic's `fill_in_fast` (Ku et al. 2018; kujason/ip_basic),
 written for Kinect-style depth: invert valid depths (so dilation prefers nearer surfaces), dilate
 with a 5x5 diamond, close with a 5x5 square, fill what is still empty from a 7x7 dilation, median
 blur, blur, invert back. Differences from the LiDAR original, each a parameter:

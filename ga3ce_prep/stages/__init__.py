@@ -1,4 +1,4 @@
-"""The preprocessing stages and the registry of their backends (DESIGN.md §1).
+"""The preprocessing stages and the registry of their backends (docs/pipeline.md).
 
 Stages, in dependency order, and what a failure of each does to the frame (docs/pipeline.md):
 

@@ -1,4 +1,4 @@
-"""Writers of the three real on-disk formats (research/gfie.md §1, research/gafa.md §1).
+"""Writers of the three real on-disk formats (docs/datasets.md; sources in docs/paper.md §4).
 
 Ids and split conventions come from the dataset modules (gfie.frame_id, cad120.frame_id,
 gafa.SESSION_ORDER, ...) so the adapters' ids and ours agree by construction. Numbers are written
