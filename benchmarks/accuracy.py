@@ -55,7 +55,7 @@ def _run(cmd: list[str]) -> None:
 @click.option("--rows", default=None, help="Ablation rows (default: all).")
 @click.option("--seeds", default="0", show_default=True, help="Training seeds (comma-separated): mean +- std.")
 @click.option("--epochs", default=RECIPE.epochs, show_default=True, help="Training epochs (the default recipe's).")
-@click.option("--lr", default=RECIPE.lr, show_default=True, help="Peak learning rate (the default recipe's; the paper: 1.4e-3).")
+@click.option("--lr", default=RECIPE.lr, show_default=True, help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
 @click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True, help="View-noise augmentation.")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")

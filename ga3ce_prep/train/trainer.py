@@ -1,10 +1,9 @@
-"""The GA3CE training loop (the paper's recipe, DESIGN.md §3).
+"""The GA3CE training loop (the paper's recipe, DESIGN.md §3; every knob is a `TrainConfig` field).
 
-AdamW (lr 3e-4 by default: the paper's 1.4e-3 collapses to g = v with this post-LN transformer,
-docs/training.md; weight decay 0.1), a per-step schedule with 4 warm-up epochs then cosine decay,
-gradient clipping at L2 norm 0.1, batch 32, 20 epochs, the arccos loss, view-noise augmentation
-(on by default for GFIE stores). Seeded and deterministic on CPU: the batches, the augmentation
-and dropout of epoch e are drawn from (seed, e), so a resumed run matches an uninterrupted one.
+AdamW with a per-step schedule (linear warm-up, then cosine decay to 0), gradient clipping, the
+arccos loss and view-noise augmentation. Seeded and deterministic on CPU: the batches, the
+augmentation and the dropout of epoch e are drawn from (seed, e), so a resumed run matches an
+uninterrupted one.
 
 A run folder holds: config.json, last.pt (written atomically after every epoch, with the optimiser,
 for --resume), best.pt (lowest validation 3D MAE), history.csv and curves.png (loss and val MAE per
@@ -43,35 +42,27 @@ VIEW_NOISE_DATASETS = ("gfie",)  # "auto" turns the augmentation on for these st
 
 @dataclass
 class TrainConfig:
-    """Everything a training run depends on. Defaults are the paper's recipe.
+    """Everything a training run depends on (saved as config.json and in every checkpoint)."""
 
-    store / out: the store path and the run folder. epochs, batch_size, lr, weight_decay,
-    warmup_epochs, grad_clip: the recipe. view_noise: "auto" (on for GFIE stores), "on", "off";
-    view_noise_amplitude: a in eps ~ U[-a, a]^3. seed: every random draw. device: "cpu" | "cuda".
-    threads: torch CPU threads. n_max: pad objects to this fixed count (168 GFIE/CAD-120, 278 GAFA;
-    None = per-batch padding). bucket: group batches by object count. train_frames / val_frames:
-    use an evenly spaced subset (short runs). progress: show progress bars. model: ModelConfig.
-    """
-
-    store: str = ""
-    out: str = "runs/ga3ce"
-    epochs: int = 20
-    batch_size: int = 32
-    lr: float = 3e-4  # the paper: 1.4e-3, which collapses to g = v here (docs/training.md)
-    weight_decay: float = 0.1
-    warmup_epochs: float = 4.0
-    grad_clip: float = 0.1
-    view_noise: str = "auto"
-    view_noise_amplitude: float = 0.5
-    seed: int = 0
-    device: str = "cpu"
-    threads: int = 2
-    n_max: int | None = None
-    bucket: bool = True
-    train_frames: int | None = None
-    val_frames: int | None = None
-    progress: bool = True
-    model: ModelConfig = field(default_factory=ModelConfig)
+    store: str = ""  # the 3D context store to train on (from `ga3ce-prep run`)
+    out: str = "runs/ga3ce"  # the run folder
+    epochs: int = 20  # training epochs (the paper's 20)
+    batch_size: int = 32  # frames per batch (the paper: 32 on GFIE, 64 on GAFA)
+    lr: float = 3e-4  # peak AdamW learning rate, below the paper's: docs/training.md "Learning rate"
+    weight_decay: float = 0.1  # AdamW weight decay (the paper's)
+    warmup_epochs: float = 4.0  # linear warm-up over this many epochs (stepped per batch), then cosine decay to 0
+    grad_clip: float = 0.1  # clip the gradient's global L2 norm to this (the paper's)
+    view_noise: str = "auto"  # augmentation v <- normalise(v + eps): auto (on where the paper used it: GFIE), on, off
+    view_noise_amplitude: float = 0.5  # a in eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
+    seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
+    device: str = "cpu"  # where to train: cpu or cuda
+    threads: int = 2  # torch CPU threads (keep at the number of free cores)
+    n_max: int | None = None  # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
+    bucket: bool = True  # group batches by object count (less padding per batch)
+    train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); None = all
+    val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; None = all
+    progress: bool = True  # progress bars (else one log line per epoch)
+    model: ModelConfig = field(default_factory=ModelConfig)  # architecture and ablation switches
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
