@@ -17,10 +17,9 @@ def _n_max(value: str, store: str) -> int | None:
         return None
     if value == "auto":
         from ..store import open_store
-        from .dataset import N_MAX
+        from .profiles import DatasetProfile
 
-        name = str(open_store(store).attrs.get("dataset", {}).get("name", ""))
-        return N_MAX.get(name, 168)
+        return DatasetProfile.for_store(open_store(store)).n_max
     try:
         return int(value)
     except ValueError:

@@ -4,7 +4,7 @@
 view (3,), pose (30, 3) NaN rows = missing, head_pos (3,), gaze (3,), objects (n_i, 3), area (n_i,)
 and the store row `index`, all torch tensors (metres, camera frame). `collate` pads a list of
 samples into a `Batch` with a boolean object mask: to the batch's largest object count, or to a
-fixed N_max (168 for GFIE/CAD-120, 278 for GAFA), keeping the largest masks (by pixel area) when a
+fixed N_max (the dataset's `DatasetProfile.n_max`), keeping the largest masks (by pixel area) when a
 frame has more. `ContextDataset.batch(indices)` builds the same Batch straight from the arrays
 (vectorised gather; what the trainer uses). `BucketBatchSampler` groups frames of similar object
 counts so per-batch padding stays small.
@@ -29,11 +29,9 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from ..store import ContextStore, open_store
+from .profiles import DatasetProfile
 
 log = logging.getLogger("ga3ce_prep.train")
-
-# The paper's fixed object padding per dataset (GFIE and CAD-120: 168, GAFA: 278).
-N_MAX: dict[str, int] = {"gfie": 168, "cad120": 168, "gafa": 278}
 
 
 @dataclass
@@ -140,8 +138,9 @@ class ContextDataset(Dataset):
         self.scene = np.asarray(f["scene"][rows])
 
     @property
-    def dataset_name(self) -> str:
-        return str(self.store.attrs.get("dataset", {}).get("name", ""))
+    def profile(self) -> DatasetProfile:
+        """The per-dataset constants of the store's dataset."""
+        return DatasetProfile.for_store(self.store)
 
     def __len__(self) -> int:
         return len(self.rows)

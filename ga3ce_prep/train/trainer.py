@@ -33,12 +33,10 @@ from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save
 from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
 from .evaluate import predict
 from .plots import plot_curves
+from .profiles import DatasetProfile
 from .schedule import warmup_cosine_lr
 
 log = logging.getLogger("ga3ce_prep.train")
-
-VIEW_NOISE_DATASETS = ("gfie",)  # "auto" turns the augmentation on for these stores (paper: GFIE only)
-
 
 @dataclass
 class TrainConfig:
@@ -84,8 +82,9 @@ class TrainConfig:
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
 
-    def uses_view_noise(self, dataset_name: str) -> bool:
-        return self.view_noise == "on" or (self.view_noise == "auto" and dataset_name in VIEW_NOISE_DATASETS)
+    def uses_view_noise(self, profile: DatasetProfile) -> bool:
+        """Whether to augment v when training on a store of the dataset `profile`."""
+        return self.view_noise == "on" or (self.view_noise == "auto" and profile.view_noise)
 
 
 def setup_torch(threads: int, device: str) -> torch.device:
@@ -166,7 +165,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
         val_ds = None
     if val_ds is None:
         log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
-    noise_on = config.uses_view_noise(train_ds.dataset_name)
+    noise_on = config.uses_view_noise(train_ds.profile)
     cfg = config.to_dict()
     (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": noise_on,
                                                  "store_fingerprint": fingerprint}, indent=2))
