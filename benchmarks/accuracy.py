@@ -15,7 +15,6 @@ runs are reused, unfinished ones resumed), so rerunning the same command continu
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -96,7 +95,7 @@ def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_conf
     result = {**{k: v for k, v in summary.items() if k != "table"}, "checks": checks,
               "world": {"scenes": scenes, "frames_per_scene": frames_per_scene, "seed": seed,
                         "synth_config": synth_config, "pipeline": pipeline, "sets": list(sets)},
-              "recipe": dataclasses.asdict(base) | {"model": base.model.to_dict()},
+              "recipe": base.to_dict(),
               "command": " ".join(sys.argv)}
     (out / "accuracy.json").write_text(json.dumps(result, indent=2, default=float))
     click.echo(f"\nwrote {out / 'accuracy.json'}, {summary.get('png')}")

@@ -19,7 +19,7 @@ import os
 import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -38,6 +38,7 @@ from .schedule import warmup_cosine_lr
 
 log = logging.getLogger("ga3ce_prep.train")
 
+
 @dataclass
 class TrainConfig:
     """Everything a training run depends on (saved as config.json and in every checkpoint)."""
@@ -50,15 +51,15 @@ class TrainConfig:
     weight_decay: float = 0.1  # AdamW weight decay (the paper's)
     warmup_epochs: float = 4.0  # linear warm-up over this many epochs (stepped per batch), then cosine decay to 0
     grad_clip: float = 0.1  # clip the gradient's global L2 norm to this (the paper's)
-    view_noise: str = "auto"  # augmentation v <- normalise(v + eps): auto (on where the paper used it: GFIE), on, off
-    view_noise_amplitude: float = 0.5  # a in eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
+    view_noise: Literal["auto", "on", "off"] = "auto"  # augment v <- normalise(v + eps): on, off, or auto = as the paper on this dataset (DatasetProfile: on for GFIE)
+    view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
     seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
-    device: str = "cpu"  # where to train: cpu or cuda
-    threads: int = 2  # torch CPU threads (keep at the number of free cores)
+    device: Literal["cpu", "cuda"] = "cpu"  # where to train
+    threads: int = 2  # CPU threads of torch (keep at the number of free cores)
     n_max: int | None = None  # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
     bucket: bool = True  # group batches by object count (less padding per batch)
-    train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); None = all
-    val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; None = all
+    train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
+    val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
     progress: bool = True  # progress bars (else one log line per epoch)
     model: ModelConfig = field(default_factory=ModelConfig)  # architecture and ablation switches
 
