@@ -28,6 +28,7 @@ def test_dataset_splits_and_samples(toy):
     ds = {s: ContextDataset(toy, s) for s in ("train", "val", "test")}
     assert sum(len(d) for d in ds.values()) == len(toy) == 300
     assert set(ds["train"].scene) & set(ds["test"].scene) == set()   # split by scene
+    assert ds["train"].xyz is ds["test"].xyz                          # the store's objects, sorted once
     d = ds["train"]
     s = d[5]
     row = int(s["index"])

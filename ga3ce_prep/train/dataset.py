@@ -73,24 +73,6 @@ def store_fingerprint(store: ContextStore) -> str:
     return h.hexdigest()
 
 
-def _sorted_objects(store: ContextStore) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every frame's usable objects, largest mask first: (xyz (M',3) f32, area (M',), start (N,),
-    count (N,)). Non-finite objects and the objects of frames without a finite head are dropped."""
-    count = store.frames["obj_count"].astype(np.int64)
-    start = store.frames["obj_start"].astype(np.int64)
-    owner = np.repeat(np.arange(len(count)), count)
-    rows = (np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)) + np.repeat(start, count)
-    xyz = store.objects["xyz"][rows].astype(np.float32)
-    area = store.objects["area"][rows]
-    head_ok = np.isfinite(store.frames["head_pos"]).all(1)
-    keep = np.isfinite(xyz).all(1) & head_ok[owner]
-    order = np.lexsort((-area[keep].astype(np.float64), owner[keep]))
-    owner, xyz, area = owner[keep][order], xyz[keep][order], area[keep][order]
-    new_count = np.bincount(owner, minlength=len(count)).astype(np.int64)
-    new_start = np.cumsum(new_count) - new_count
-    return xyz, area, new_start, new_count
-
-
 class ContextDataset(Dataset):
     """Per-frame GA3CE inputs of one or more splits of a store (see the module docstring).
 
@@ -126,9 +108,7 @@ class ContextDataset(Dataset):
             log.info("%s: left out %d frames without a view prior and %d without ground-truth gaze",
                      s.path, self.n_no_view, self.n_no_gaze)
         self.rows = rows
-        if not hasattr(s, "_ga3ce_objects"):  # shared by every dataset built on this store
-            s._ga3ce_objects = _sorted_objects(s)
-        self.xyz, self.area, start, count = s._ga3ce_objects
+        self.xyz, self.area, start, count = s.usable_objects
         self.obj_start, self.obj_count = start[rows], count[rows]
         self.view = np.ascontiguousarray(f["view"][rows], np.float32)
         self.view /= np.linalg.norm(self.view, axis=1, keepdims=True)
