@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from ..errors import ConfigError
 from ..model import GA3CE, ModelConfig, angular_loss
-from ..store import open_store
+from ..store import ContextStore, open_store
 from .augment import view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
 from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
@@ -115,12 +115,37 @@ def _write_history(history: list[dict[str, Any]], out: Path) -> None:
     plot_curves(history, out / "curves.png")
 
 
-def _val_mae(model: GA3CE, ds: ContextDataset | None, device: torch.device, n_max: int | None) -> float:
-    if ds is None or len(ds) == 0:
-        return float("nan")
-    pred = predict(model, ds, device=device, n_max=n_max)
-    cos = np.clip(np.sum(pred * ds.gaze, axis=1), -1, 1)
-    return float(np.degrees(np.arccos(cos)).mean())
+def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean angle in degrees between the unit vectors a and b (n, 3). (Not geometry.angular_error_deg:
+    that one re-normalises, which moves the last bits of the recorded validation figures.)"""
+    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1))).mean())
+
+
+def _splits(config: TrainConfig, store: ContextStore) -> tuple[ContextDataset, ContextDataset | None]:
+    """The training frames and the validation frames (None when the store has none)."""
+    train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
+    if len(train_ds) == 0:
+        raise ConfigError(f"{config.store}: no training frames with a view prior and ground-truth gaze "
+                          f"(splits: {store.split_names}); build the store from a dataset with a train split")
+    val_ds = ContextDataset(store, "val", max_frames=config.val_frames) if "val" in store.split_names else None
+    if val_ds is None or len(val_ds) == 0:
+        log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
+        return train_ds, None
+    return train_ds, val_ds
+
+
+def _appearance_only(out: Path, state: dict[str, Any], model: GA3CE, epochs: int, prior: float) -> Path:
+    """The "appearance only" run (use_context off): g = v has nothing to train, so last.pt and
+    best.pt hold the parameter-free model at the last epoch with the v prior's validation MAE, for
+    evaluate and ablate to read like any other run."""
+    history = [{"epoch": epochs - 1, "step": 0, "lr": 0.0, "train_loss": float("nan"), "train_mae": float("nan"),
+                "val_mae": prior, "val_prior_mae": prior, "seconds": 0.0, "samples_per_s": float("nan")}]
+    ckpt = {**state, "epoch": epochs - 1, "model": model.state_dict(), "history": history, "best_val": prior}
+    save_checkpoint(out / "last.pt", ckpt)
+    save_checkpoint(out / "best.pt", ckpt)
+    _write_history(history, out)
+    log.info("appearance only (use_context off): g = v, nothing to train")
+    return out
 
 
 def train_step(model: GA3CE, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
@@ -157,36 +182,18 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     store = open_store(config.store)
     fingerprint = store_fingerprint(store)
-    train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
-    if len(train_ds) == 0:
-        raise ConfigError(f"{config.store}: no training frames with a view prior and ground-truth gaze "
-                          f"(splits: {store.split_names}); build the store from a dataset with a train split")
-    val_ds = ContextDataset(store, "val", max_frames=config.val_frames) if "val" in store.split_names else None
-    if val_ds is not None and len(val_ds) == 0:
-        val_ds = None
-    if val_ds is None:
-        log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
-    noise_on = config.uses_view_noise(train_ds.profile)
+    train_ds, val_ds = _splits(config, store)
+    use_noise = config.uses_view_noise(train_ds.profile)
     cfg = config.to_dict()
-    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": noise_on,
+    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise,
                                                  "store_fingerprint": fingerprint}, indent=2))
 
     torch.manual_seed(config.seed)
     model = GA3CE(config.model).to(device)
     state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
-    prior = np.degrees(np.arccos(np.clip(np.sum(val_ds.view * val_ds.gaze, 1), -1, 1))).mean() if val_ds else float("nan")
-
-    if not config.model.use_context:  # appearance only: g = v, nothing to learn
-        history = [{"epoch": config.epochs - 1, "step": 0, "lr": 0.0, "train_loss": float("nan"),
-                    "train_mae": float("nan"), "val_mae": float(prior), "val_prior_mae": float(prior),
-                    "seconds": 0.0, "samples_per_s": float("nan")}]
-        ckpt = {**state, "epoch": config.epochs - 1, "model": model.state_dict(), "history": history,
-                "best_val": float(prior)}
-        save_checkpoint(last_path, ckpt)
-        save_checkpoint(best_path, ckpt)
-        _write_history(history, out)
-        log.info("appearance only (use_context off): g = v, nothing to train")
-        return out
+    prior = _mean_angle_deg(val_ds.view, val_ds.gaze) if val_ds else float("nan")
+    if not config.model.use_context:
+        return _appearance_only(out, state, model, config.epochs, prior)
 
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
@@ -215,7 +222,6 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     elif resume:
         log.warning("%s holds no last.pt: starting a new run", out)
 
-    use_noise = noise_on
     end_epoch = config.epochs if stop_after_epochs is None else min(config.epochs, start_epoch + stop_after_epochs)
     for epoch in range(start_epoch, end_epoch):
         sampler.set_epoch(epoch)
@@ -238,10 +244,10 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
             bar.set_postfix(loss=f"{loss.item():.4f}", mae=f"{np.degrees(sum_loss / n_seen):.2f}", lr=f"{lr:.2e}")
         seconds = time.perf_counter() - t0
         model.eval()
-        val = _val_mae(model, val_ds, device, config.n_max)
+        val = _mean_angle_deg(predict(model, val_ds, device=device, n_max=config.n_max), val_ds.gaze) if val_ds else float("nan")
         row = {"epoch": epoch, "step": step, "lr": lr, "train_loss": sum_loss / n_seen,
                "train_mae": float(np.degrees(sum_loss / n_seen)), "val_mae": val,
-               "val_prior_mae": float(prior), "seconds": round(seconds, 2),
+               "val_prior_mae": prior, "seconds": round(seconds, 2),
                "samples_per_s": round(n_seen / seconds, 1)}
         history.append(row)
         improved = not (val >= best_val)  # NaN (no val split) counts as an improvement: best = last
