@@ -28,16 +28,15 @@ log = logging.getLogger("ga3ce_prep.train")
 
 @dataclass(frozen=True)
 class Ablation:
-    """One row: its name (the run folder), label, the ModelConfig overrides, which paper table it
-    belongs to with that table's check marks, and the paper's 3D MAE on GFIE and GAFA."""
+    """One row of the paper's Tables 4 and 5."""
 
-    name: str
-    label: str
-    overrides: dict[str, Any]
+    name: str                             # its run folder, and its name for `train --ablation` and `ablate --rows`
+    label: str                            # its label in the printed tables
+    overrides: dict[str, Any]             # the ModelConfig fields it changes
     table4: tuple[str, str, str] | None   # (appearance, pose, objects) marks; None = not in Table 4
-    table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks
-    paper_gfie: float | None
-    paper_gafa: float | None
+    table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks; None = not in Table 5
+    paper_gfie: float | None              # the paper's 3D MAE on GFIE, degrees; None = not reported
+    paper_gafa: float | None              # the paper's 3D MAE on GAFA, degrees; None = not reported
 
 
 ABLATIONS: tuple[Ablation, ...] = (

@@ -102,9 +102,9 @@ def _log_setup() -> None:
 @click.option("--ablation", type=click.Choice(list(BY_NAME)), default="full", show_default=True,
               help="Train one row of the paper's ablations (train/ablate.py::ABLATIONS): "
               + "; ".join(f"{a.name} = {a.label}" for a in ABLATIONS) + ".")
-@click.option("--rotation", type=click.Choice(ROTATIONS), default="cyclotorsion", show_default=True,
+@click.option("--rotation", type=click.Choice(ROTATIONS), default=ModelConfig().rotation, show_default=True,
               help=_help(ModelConfig, "rotation"))
-@click.option("--encoding", type=click.Choice(ENCODINGS), default="d3", show_default=True,
+@click.option("--encoding", type=click.Choice(ENCODINGS), default=ModelConfig().encoding, show_default=True,
               help=_help(ModelConfig, "encoding"))
 @recipe_options
 @click.option("--resume", is_flag=True, help="Continue the run in --out from last.pt (refused if the store or options changed).")

@@ -180,6 +180,8 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
         raise CheckpointError(f"{out} already holds a run (last.pt): pass --resume to continue it, "
                               "--force to overwrite it, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+
+    # the data, and the configuration as the run folder records it
     store = open_store(config.store)
     fingerprint = store_fingerprint(store)
     train_ds, val_ds = _splits(config, store)
@@ -188,6 +190,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise,
                                                  "store_fingerprint": fingerprint}, indent=2))
 
+    # the model (initial weights drawn from the seed); appearance only has nothing to train
     torch.manual_seed(config.seed)
     model = GA3CE(config.model).to(device)
     state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
@@ -195,6 +198,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     if not config.model.use_context:
         return _appearance_only(out, state, model, config.epochs, prior)
 
+    # the optimiser, batches by object count, the per-step schedule
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
     sampler = BucketBatchSampler(train_ds.obj_count if config.model.use_objects else np.zeros(len(train_ds)),
@@ -206,6 +210,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     best_val = math.inf
     start_epoch = 0
 
+    # continue from last.pt: weights, optimiser, history
     if resume and last_path.exists():
         ckpt = load_checkpoint(last_path)
         problems = check_checkpoint(ckpt, last_path, fingerprint, cfg, force=force)
@@ -243,6 +248,8 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
             n_seen += len(idx)
             bar.set_postfix(loss=f"{loss.item():.4f}", mae=f"{np.degrees(sum_loss / n_seen):.2f}", lr=f"{lr:.2e}")
         seconds = time.perf_counter() - t0
+
+        # validate, keep the best, checkpoint every epoch, log
         model.eval()
         val = _mean_angle_deg(predict(model, val_ds, device=device, n_max=config.n_max), val_ds.gaze) if val_ds else float("nan")
         row = {"epoch": epoch, "step": step, "lr": lr, "train_loss": sum_loss / n_seen,
