@@ -15,7 +15,6 @@ runs are reused, unfinished ones resumed), so rerunning the same command continu
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -55,7 +54,7 @@ def _run(cmd: list[str]) -> None:
 @click.option("--rows", default=None, help="Ablation rows (default: all).")
 @click.option("--seeds", default="0", show_default=True, help="Training seeds (comma-separated): mean +- std.")
 @click.option("--epochs", default=RECIPE.epochs, show_default=True, help="Training epochs (the default recipe's).")
-@click.option("--lr", default=RECIPE.lr, show_default=True, help="Peak learning rate (the default recipe's; the paper: 1.4e-3).")
+@click.option("--lr", default=RECIPE.lr, show_default=True, help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
 @click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True, help="View-noise augmentation.")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")
@@ -96,7 +95,7 @@ def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_conf
     result = {**{k: v for k, v in summary.items() if k != "table"}, "checks": checks,
               "world": {"scenes": scenes, "frames_per_scene": frames_per_scene, "seed": seed,
                         "synth_config": synth_config, "pipeline": pipeline, "sets": list(sets)},
-              "recipe": dataclasses.asdict(base) | {"model": base.model.to_dict()},
+              "recipe": base.to_dict(),
               "command": " ".join(sys.argv)}
     (out / "accuracy.json").write_text(json.dumps(result, indent=2, default=float))
     click.echo(f"\nwrote {out / 'accuracy.json'}, {summary.get('png')}")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -205,6 +206,25 @@ class ContextStore:
     def objects_of(self, i: int) -> np.ndarray:
         """(n_i, 3) object positions of frame i."""
         return self.objects["xyz"][self.object_slice(i)]
+
+    @cached_property
+    def usable_objects(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every frame's usable objects, largest mask first, computed once per store (the trainer's
+        datasets share it): xyz (M', 3) float32 metres, area (M',) pixels, start (N,), count (N,)
+        int64, CSR like frames/obj_start and obj_count. Objects with a non-finite position, and all
+        objects of a frame without a finite head position, are left out."""
+        count = self.frames["obj_count"].astype(np.int64)
+        start = self.frames["obj_start"].astype(np.int64)
+        owner = np.repeat(np.arange(len(count)), count)
+        rows = (np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)) + np.repeat(start, count)
+        xyz = self.objects["xyz"][rows].astype(np.float32)
+        area = self.objects["area"][rows]
+        head_ok = np.isfinite(self.frames["head_pos"]).all(1)
+        keep = np.isfinite(xyz).all(1) & head_ok[owner]
+        order = np.lexsort((-area[keep].astype(np.float64), owner[keep]))
+        owner, xyz, area = owner[keep][order], xyz[keep][order], area[keep][order]
+        new_count = np.bincount(owner, minlength=len(count)).astype(np.int64)
+        return xyz, area, np.cumsum(new_count) - new_count, new_count
 
 
 def open_store(path: str | Path) -> ContextStore:

@@ -1,4 +1,5 @@
 """The training loop, checkpoints, evaluation, ablation table and CLI, on small toy stores."""
+import dataclasses
 import json
 
 import numpy as np
@@ -131,7 +132,7 @@ def test_cli_train_eval(store, tmp_path):
     runner = CliRunner()
     out = tmp_path / "cli"
     res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--epochs", "1", "--train-frames", "32",
-                              "--val-frames", "16", "--no-progress", "--no-ga3ce", "--model-set", "cone_bias_scale=2",
+                              "--val-frames", "16", "--no-progress", "--ablation", "no-ga3ce", "--model-set", "cone_bias_scale=2",
                               "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
     assert res.exit_code == 0, res.output
     ck = load_checkpoint(out / "best.pt")
@@ -140,7 +141,20 @@ def test_cli_train_eval(store, tmp_path):
     res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(out / "best.pt"), "--cdf", "none"])
     assert res.exit_code == 0, res.output
     assert "GA3CE (model)" in res.output and "head direction from pose" in res.output
-    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--no-ga3ce", "--rotation", "axis_angle"])
-    assert res.exit_code != 0 and "--no-ga3ce" in res.output
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--ablation", "no-ga3ce", "--rotation", "axis_angle"])
+    assert res.exit_code != 0 and "--ablation no-ga3ce" in res.output
     res = runner.invoke(cli, ["ablate", "--help"])
     assert res.exit_code == 0 and "no-cyclotorsion" in res.output
+
+
+def test_cli_recipe_options_are_the_config_fields():
+    from ga3ce_prep.train.cli import ablate as ablate_cmd, train as train_cmd
+    d = TrainConfig()
+    for cmd in (train_cmd, ablate_cmd):
+        params = {p.name: p for p in cmd.params}
+        assert {f.name for f in dataclasses.fields(TrainConfig)} - {"model"} <= set(params)
+        for name, p in params.items():
+            if hasattr(d, name) and name not in ("store", "out", "n_max"):   # n_max: batch | auto | N
+                assert p.default == getattr(d, name), name
+    res = CliRunner().invoke(cli, ["train", "--help"])
+    assert "--no-bucket" in res.output and "--no-progress" in res.output and "no-ga3ce" in res.output

@@ -9,7 +9,7 @@ from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 from ga3ce_prep.geometry import angular_error_deg
 from ga3ce_prep.model import GA3CE
 from ga3ce_prep.store import StoreWriter, open_store
-from ga3ce_prep.train import BucketBatchSampler, ContextDataset, collate, store_fingerprint
+from ga3ce_prep.train import BucketBatchSampler, ContextDataset, DatasetProfile, collate, store_fingerprint
 from ga3ce_prep.train.augment import view_noise
 from ga3ce_prep.train.baselines import choose_snap_cone, head_direction_from_pose, snap_to_object
 from ga3ce_prep.train.metrics import angular_errors_2d, summarize
@@ -28,6 +28,7 @@ def test_dataset_splits_and_samples(toy):
     ds = {s: ContextDataset(toy, s) for s in ("train", "val", "test")}
     assert sum(len(d) for d in ds.values()) == len(toy) == 300
     assert set(ds["train"].scene) & set(ds["test"].scene) == set()   # split by scene
+    assert ds["train"].xyz is ds["test"].xyz                          # the store's objects, sorted once
     d = ds["train"]
     s = d[5]
     row = int(s["index"])
@@ -99,6 +100,15 @@ def test_fixed_nmax_padding_keeps_the_prediction(toy):
         outs = [model(*(lambda b: (b.view, b.pose, b.head_pos, b.objects, b.mask))(ds.batch(idx, n_max)))
                 for n_max in (None, 168)]
     torch.testing.assert_close(outs[0], outs[1], atol=1e-5, rtol=0)
+
+
+def test_dataset_profiles(tmp_path):
+    gfie, gafa, toy = (DatasetProfile.for_dataset(n) for n in ("gfie", "gafa", "toy"))
+    assert (gfie.n_max, gfie.view_noise, gfie.paper_column) == (168, True, "gfie")
+    assert (gafa.n_max, gafa.view_noise, gafa.paper_column) == (278, False, "gafa")
+    assert (toy.n_max, toy.view_noise, toy.paper_column) == (168, False, "gfie")   # an unknown dataset
+    st = open_store(write_toy_store(tmp_path / "gafa.zarr", 40, dataset="gafa"))
+    assert ContextDataset(st, "train").profile == gafa
 
 
 def test_bucket_sampler():

@@ -25,45 +25,36 @@ from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
 
 @dataclass
 class ModelConfig:
-    """Architecture, encodings and ablation switches of GA3CE (paper values as defaults).
+    """Architecture, encodings and ablation switches of GA3CE; defaults are the paper's values, or
+    our reading where it is silent (docs/training.md, "The model")."""
 
-    rotation: "cyclotorsion" | "axis_angle" (no cyclotorsion) | "none" (no egocentric rotation).
-    encoding: "d3" | "standard" (no D3: gamma of the point itself, same widths).
-    use_pose / use_objects: False feeds the learned missing-joint embeddings / the null token alone.
-    use_context: False is "appearance only": g = v, no parameters are used.
-    cone_bias: add the gaze-cone bias to cross-attention (scaled by cone_bias_scale; 1 = paper).
-    norm_first: pre-LayerNorm transformer layers (False = nn.Transformer's default, post-LN).
-    Fourier scales (cycles per unit): view_scale and direction_scale per unit-vector component,
-    pose_distance_scale / pose_position_scale per head width, object_* per metre.
-    """
-
-    rotation: str = "cyclotorsion"
-    encoding: str = "d3"
-    use_pose: bool = True
-    use_objects: bool = True
-    use_context: bool = True
-    cone_bias: bool = True
-    cone_bias_scale: float = 1.0
-    d_model: int = 256
-    n_heads: int = 2
-    dim_feedforward: int = 512
-    num_encoder_layers: int = 3
-    num_decoder_layers: int = 3
-    dropout: float = 0.1
-    norm_first: bool = False
-    head_hidden: int = 512
-    view_width: int = 106
-    joint_width: int = 10
-    joint_dir_width: int = 6
-    object_dir_width: int = 128
-    view_scale: float = 1.0
-    direction_scale: float = 0.25
-    pose_distance_scale: float = 0.05
-    object_distance_scale: float = 0.3
-    pose_position_scale: float = 0.05
-    object_position_scale: float = 0.15
-    head_width_pair: tuple[int, int] = HEAD_WIDTH_PAIR
-    fourier_seed: int = 0
+    rotation: str = "cyclotorsion"  # egocentric rotation: cyclotorsion (GA3CE's), axis_angle (ablation "no cyclotorsion"), none (ablation "no egocentric transform")
+    encoding: str = "d3"  # point encoding: d3 (direction ++ distance) or standard (gamma of the point itself, same widths; ablation "no D3")
+    use_pose: bool = True  # False feeds every joint's learned missing-joint embedding (ablation "appearance + objects")
+    use_objects: bool = True  # False feeds the learned null object token alone (ablation "appearance + pose")
+    use_context: bool = True  # False is "appearance only": g = v, no parameters are used
+    cone_bias: bool = True  # add the gaze-cone bias cos(v, object direction from the head) to cross-attention
+    cone_bias_scale: float = 1.0  # multiplies the gaze-cone bias (1 = the paper)
+    d_model: int = 256  # transformer width = E_subject's width, view_width + 15 x joint_width
+    n_heads: int = 2  # attention heads
+    dim_feedforward: int = 512  # feed-forward width of each transformer layer
+    num_encoder_layers: int = 3  # encoder layers over [null token, objects]
+    num_decoder_layers: int = 3  # decoder layers over the subject token
+    dropout: float = 0.1  # transformer dropout (nn.Transformer's default)
+    norm_first: bool = False  # pre-LayerNorm layers; False = nn.Transformer's default, post-LN
+    head_hidden: int = 512  # hidden width of the MLP head d_model -> head_hidden -> 3
+    view_width: int = 106  # width of gamma(v'): 53 frequencies
+    joint_width: int = 10  # width of each joint's encoding
+    joint_dir_width: int = 6  # of joint_width, the direction part of D3 (the rest: distance)
+    object_dir_width: int = 128  # of d_model, the direction part of each object's D3 (the rest: distance)
+    view_scale: float = 1.0  # Fourier scale of gamma(v'), cycles per unit-vector component
+    direction_scale: float = 0.25  # Fourier scale of D3's direction part, cycles per unit-vector component (chosen on val)
+    pose_distance_scale: float = 0.05  # Fourier scale of D3's joint distance, cycles per head width
+    object_distance_scale: float = 0.3  # Fourier scale of D3's object distance, cycles per metre
+    pose_position_scale: float = 0.05  # standard encoding's scale for joints, cycles per head width (chosen on val)
+    object_position_scale: float = 0.15  # standard encoding's scale for objects, cycles per metre (chosen on val)
+    head_width_pair: tuple[int, int] = HEAD_WIDTH_PAIR  # joints whose distance is the head width 1/s of the pose normalisation
+    fourier_seed: int = 0  # seed of the fixed Gaussian matrices B of every Fourier encoding
 
     def __post_init__(self) -> None:
         self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list

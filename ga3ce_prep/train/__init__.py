@@ -8,10 +8,11 @@ Python API (what `ga3ce-prep train/eval/ablate` call):
 Other trainers can use `ContextDataset` + `collate` (or `ContextDataset.batch`) directly.
 """
 from .ablate import ABLATIONS, ablate, format_ablation_table
-from .dataset import N_MAX, Batch, BucketBatchSampler, ContextDataset, collate, store_fingerprint
+from .dataset import Batch, BucketBatchSampler, ContextDataset, collate, store_fingerprint
 from .evaluate import evaluate, format_eval_table, predict
+from .profiles import DatasetProfile
 from .trainer import TrainConfig, train
 
-__all__ = ["ABLATIONS", "ablate", "format_ablation_table", "N_MAX", "Batch", "BucketBatchSampler",
+__all__ = ["ABLATIONS", "ablate", "format_ablation_table", "Batch", "BucketBatchSampler",
            "ContextDataset", "collate", "store_fingerprint", "evaluate", "format_eval_table", "predict",
-           "TrainConfig", "train"]
+           "DatasetProfile", "TrainConfig", "train"]

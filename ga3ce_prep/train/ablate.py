@@ -17,8 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
+from .profiles import DatasetProfile
 from .trainer import TrainConfig, train
 
 log = logging.getLogger("ga3ce_prep.train")
@@ -26,16 +28,15 @@ log = logging.getLogger("ga3ce_prep.train")
 
 @dataclass(frozen=True)
 class Ablation:
-    """One row: its name (the run folder), label, the ModelConfig overrides, which paper table it
-    belongs to with that table's check marks, and the paper's 3D MAE on GFIE and GAFA."""
+    """One row of the paper's Tables 4 and 5."""
 
-    name: str
-    label: str
-    overrides: dict[str, Any]
+    name: str                             # its run folder, and its name for `train --ablation` and `ablate --rows`
+    label: str                            # its label in the printed tables
+    overrides: dict[str, Any]             # the ModelConfig fields it changes
     table4: tuple[str, str, str] | None   # (appearance, pose, objects) marks; None = not in Table 4
-    table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks
-    paper_gfie: float | None
-    paper_gafa: float | None
+    table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks; None = not in Table 5
+    paper_gfie: float | None              # the paper's 3D MAE on GFIE, degrees; None = not reported
+    paper_gafa: float | None              # the paper's 3D MAE on GAFA, degrees; None = not reported
 
 
 ABLATIONS: tuple[Ablation, ...] = (
@@ -50,7 +51,6 @@ ABLATIONS: tuple[Ablation, ...] = (
     Ablation("no-d3", "no D3 (standard encoding)", {"encoding": "standard"}, None, ("x", "x", "-"), 12.9, 20.9),
 )
 BY_NAME = {a.name: a for a in ABLATIONS}
-PAPER_APPEARANCE = {"gfie": 19.4, "gafa": 22.9}
 
 
 def _run_done(run: Path, epochs: int) -> bool:
@@ -100,19 +100,16 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
                "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
                "mae2d": float(np.mean([e["methods"]["model"]["mae2d"] for e in evals])),
                "paper_gfie": ab.paper_gfie, "paper_gafa": ab.paper_gafa,
-               "paper_ratio_gfie": ab.paper_gfie / PAPER_APPEARANCE["gfie"] if ab.paper_gfie else None,
-               "paper_ratio_gafa": ab.paper_gafa / PAPER_APPEARANCE["gafa"] if ab.paper_gafa else None}
+               "paper_ratio_gfie": ab.paper_gfie / BY_NAME["appearance"].paper_gfie if ab.paper_gfie else None,
+               "paper_ratio_gafa": ab.paper_gafa / BY_NAME["appearance"].paper_gafa if ab.paper_gafa else None}
         results.append(row)
-    from ..store import open_store  # the store's dataset name picks the paper column
-
-    ds_name = str(open_store(base.store).attrs.get("dataset", {}).get("name", ""))
-    paper_column = "gafa" if ds_name == "gafa" else "gfie"
+    profile = DatasetProfile.for_store(open_store(base.store))
     full = next((r for r in results if r["name"] == "full"), None)
     others = [r for r in results if r["name"] != "full"]
     full_best = None if full is None else all(full["mae3d"] < r["mae3d"] for r in others)
-    summary = {"store": str(base.store), "dataset": ds_name, "split": split, "seeds": seeds,
+    summary = {"store": str(base.store), "dataset": profile.name, "split": split, "seeds": seeds,
                "epochs": base.epochs, "train_frames": base.train_frames, "v_prior_mae3d": prior_mae,
-               "paper_column": paper_column, "rows": results, "full_best": full_best}
+               "paper_column": profile.paper_column, "rows": results, "full_best": full_best}
     summary["table"] = format_ablation_table(summary)
     (out / "ablation.json").write_text(json.dumps(summary, indent=2, default=float))
     with open(out / "ablation.csv", "w", newline="") as f:
@@ -121,7 +118,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
         w.writerows(results)
-    summary["png"] = str(plot_ablation(results, out / "ablation.png", paper_column))
+    summary["png"] = str(plot_ablation(results, out / "ablation.png", profile.paper_column))
     return summary
 
 

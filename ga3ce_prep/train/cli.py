@@ -1,26 +1,37 @@
-"""`ga3ce-prep train`, `ga3ce-prep eval` and `ga3ce-prep ablate`."""
+"""`ga3ce-prep train`, `ga3ce-prep eval` and `ga3ce-prep ablate`.
+
+The training options of train and ablate are made from `TrainConfig`'s fields (name, type, default,
+and the field's comment as help); `train --ablation` and `ablate --rows` read `ABLATIONS`.
+"""
 from __future__ import annotations
 
 import dataclasses
 import json
 import logging
-from typing import Any
+import typing
+from collections.abc import Callable
+from typing import Any, Literal
 
 import click
+from click.core import ParameterSource
 
 from ..errors import ConfigError
-from ..model import ModelConfig
+from ..model import ENCODINGS, ROTATIONS, ModelConfig
+from ..params import field_docs
+from ..store import open_store
+from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
+from .evaluate import evaluate as run_eval, format_eval_table
+from .profiles import PROFILES, DatasetProfile
+from .trainer import TrainConfig, train as run_train
+
+NOT_RECIPE = ("store", "out", "model")  # each command's own options; the model: --model-set (and train's choices)
 
 
 def _n_max(value: str, store: str) -> int | None:
     if value == "batch":
         return None
     if value == "auto":
-        from ..store import open_store
-        from .dataset import N_MAX
-
-        name = str(open_store(store).attrs.get("dataset", {}).get("name", ""))
-        return N_MAX.get(name, 168)
+        return DatasetProfile.for_store(open_store(store)).n_max
     try:
         return int(value)
     except ValueError:
@@ -42,47 +53,43 @@ def _model_sets(items: tuple[str, ...]) -> dict[str, Any]:
     return out
 
 
-def recipe_options(f):
-    """The training recipe's options, shared by train and ablate; defaults are TrainConfig's."""
-    from .trainer import TrainConfig  # (ga3ce_prep.train has imported it already)
+def _help(cls: type, name: str) -> str:
+    doc = field_docs(cls)[name]
+    return doc[:1].upper() + doc[1:] + "."
 
-    d = TrainConfig()
-    opts = [
-        click.option("--epochs", default=d.epochs, show_default=True, help="Training epochs."),
-        click.option("--batch-size", default=d.batch_size, show_default=True, help="Frames per batch (paper: 32 GFIE, 64 GAFA)."),
-        click.option("--lr", default=d.lr, show_default=True,
-                     help="Peak AdamW learning rate (the paper: 1.4e-3, which collapses to g = v here; docs/training.md)."),
-        click.option("--weight-decay", default=d.weight_decay, show_default=True, help="AdamW weight decay."),
-        click.option("--warmup-epochs", default=d.warmup_epochs, show_default=True, help="Linear warm-up length in epochs (per-step schedule), then cosine decay to 0."),
-        click.option("--grad-clip", default=d.grad_clip, show_default=True, help="Gradient clipping, L2 norm."),
-        click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default=d.view_noise, show_default=True,
-                     help="View-noise augmentation v <- normalise(v + U[-0.5,0.5]^3); auto = on for GFIE stores only (the paper's recipe)."),
-        click.option("--seed", default=d.seed, show_default=True, help="Seed of every random draw (same seed, same weights on CPU)."),
-        click.option("--device", type=click.Choice(["cpu", "cuda"]), default=d.device, show_default=True, help="Where to train."),
-        click.option("--threads", default=d.threads, show_default=True, help="torch CPU threads (keep at the number of free cores)."),
-        click.option("--n-max", default="batch", show_default=True,
-                     help="Object padding: batch (to the batch's largest count), auto (168 GFIE/CAD-120, 278 GAFA) or a number; frames with more keep their largest masks."),
-        click.option("--no-bucket", is_flag=True, help="Do not group batches by object count (slower with per-batch padding)."),
-        click.option("--train-frames", type=int, default=None, help="Train on an evenly spaced subset of this many frames (short runs)."),
-        click.option("--val-frames", type=int, default=None, help="Validate on a subset of this many frames."),
-        click.option("--model-set", multiple=True, metavar="KEY=VALUE",
-                     help="Set any ModelConfig field, e.g. --model-set object_distance_scale=0.5 (repeatable)."),
-        click.option("--no-progress", is_flag=True, help="No progress bars (one log line per epoch)."),
-    ]
+
+def _recipe_option(f: dataclasses.Field, hint: Any) -> Callable:
+    """The click option of one TrainConfig field: --name (--name/--no-name for a flag)."""
+    opt, default = "--" + f.name.replace("_", "-"), f.default
+    if f.name == "n_max":  # the store is needed to resolve auto: see _n_max
+        auto = ", ".join(f"{p.name} {p.n_max}" for p in PROFILES.values())
+        return click.option(opt, default="batch", show_default=True, metavar="batch|auto|N",
+                            help=f"Object slots per frame: batch (the batch's largest count), auto (the dataset's "
+                            f"N_max: {auto}) or a number; frames with more keep their largest masks.")
+    if hint is bool:
+        return click.option(f"{opt}/--no-{opt[2:]}", default=default, show_default=True, help=_help(TrainConfig, f.name))
+    if typing.get_origin(hint) is Literal:
+        hint = click.Choice(typing.get_args(hint))
+    elif default is None:  # X | None
+        hint = next(t for t in typing.get_args(hint) if t is not type(None))
+    return click.option(opt, type=hint, default=default, show_default=default is not None,
+                        help=_help(TrainConfig, f.name))
+
+
+def recipe_options(f: Callable) -> Callable:
+    """The training recipe's options, shared by train and ablate: one per TrainConfig field, and
+    --model-set for any ModelConfig field."""
+    hints = typing.get_type_hints(TrainConfig)
+    opts = [_recipe_option(fld, hints[fld.name]) for fld in dataclasses.fields(TrainConfig) if fld.name not in NOT_RECIPE]
+    opts.append(click.option("--model-set", multiple=True, metavar="KEY=VALUE",
+                             help="Set any ModelConfig field, e.g. --model-set object_distance_scale=0.5 (repeatable)."))
     for o in reversed(opts):
         f = o(f)
     return f
 
 
-def _config(store: str, out: str, model: ModelConfig, **kw) -> "TrainConfig":  # noqa: F821
-    from .trainer import TrainConfig
-
-    return TrainConfig(
-        store=store, out=out, epochs=kw["epochs"], batch_size=kw["batch_size"], lr=kw["lr"],
-        weight_decay=kw["weight_decay"], warmup_epochs=kw["warmup_epochs"], grad_clip=kw["grad_clip"],
-        view_noise=kw["view_noise"], seed=kw["seed"], device=kw["device"], threads=kw["threads"],
-        n_max=_n_max(kw["n_max"], store), bucket=not kw["no_bucket"], train_frames=kw["train_frames"],
-        val_frames=kw["val_frames"], progress=not kw["no_progress"], model=model)
+def _train_config(store: str, out: str, model: ModelConfig, n_max: str, **recipe: Any) -> TrainConfig:
+    return TrainConfig(store=store, out=out, n_max=_n_max(n_max, store), model=model, **recipe)
 
 
 def _log_setup() -> None:
@@ -92,40 +99,39 @@ def _log_setup() -> None:
 @click.command()
 @click.option("--store", required=True, help="The 3D context store (from `ga3ce-prep run`).")
 @click.option("--out", required=True, help="Run folder: checkpoints, config.json, history.csv, curves.png.")
-@click.option("--rotation", type=click.Choice(["cyclotorsion", "axis_angle", "none"]), default="cyclotorsion",
-              show_default=True, help="Egocentric rotation: GA3CE's cyclotorsion-free one, the axis-angle one "
-              "(ablation 'no cyclotorsion') or none (ablation 'no egocentric transform').")
-@click.option("--encoding", type=click.Choice(["d3", "standard"]), default="d3", show_default=True,
-              help="Point encoding: D3 (direction ++ distance) or standard Fourier features of the point (ablation 'no D3').")
-@click.option("--no-objects", is_flag=True, help="Ablation 'appearance + pose': objects replaced by the learned null token.")
-@click.option("--no-pose", is_flag=True, help="Ablation 'appearance + objects': every joint replaced by its learned missing-joint embedding.")
-@click.option("--no-context", is_flag=True, help="Ablation 'appearance only': g = v, nothing to train (writes a checkpoint eval can read).")
-@click.option("--no-ga3ce", is_flag=True, help="Ablation '3D without GA3CE': no egocentric rotation and standard encoding.")
+@click.option("--ablation", type=click.Choice(list(BY_NAME)), default="full", show_default=True,
+              help="Train one row of the paper's ablations (train/ablate.py::ABLATIONS): "
+              + "; ".join(f"{a.name} = {a.label}" for a in ABLATIONS) + ".")
+@click.option("--rotation", type=click.Choice(ROTATIONS), default=ModelConfig().rotation, show_default=True,
+              help=_help(ModelConfig, "rotation"))
+@click.option("--encoding", type=click.Choice(ENCODINGS), default=ModelConfig().encoding, show_default=True,
+              help=_help(ModelConfig, "encoding"))
 @recipe_options
 @click.option("--resume", is_flag=True, help="Continue the run in --out from last.pt (refused if the store or options changed).")
 @click.option("--force", is_flag=True, help="Overwrite an existing run, or resume despite a store/config mismatch.")
-def train(store, out, rotation, encoding, no_objects, no_pose, no_context, no_ga3ce, resume, force, model_set, **kw):
+@click.pass_context
+def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_set, **recipe):
     """Train the GA3CE 3D gaze transformer on a store with the paper's recipe.
 
     \b
-    Defaults: AdamW lr 3e-4 (the paper's 1.4e-3 does not train here: docs/training.md),
-    weight decay 0.1, 4 warm-up epochs then cosine (per step), gradient clip 0.1, batch 32,
-    20 epochs, seeded and deterministic on CPU.
-    Example: ga3ce-prep train --store synth.zarr --out runs/full
+    Defaults: the paper's recipe (AdamW, weight decay 0.1, 4 warm-up epochs then cosine per step,
+    gradient clip 0.1, batch 32, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
+    and deterministic on CPU.
+    Example: ga3ce-prep train --store synth.zarr --out runs/full --ablation no-d3
     """
-    from .trainer import train as run_train
-
     _log_setup()
-    if no_ga3ce:
-        if rotation != "cyclotorsion" or encoding != "d3":
-            raise click.UsageError("--no-ga3ce sets --rotation none and --encoding standard itself; drop those options")
-        rotation, encoding = "none", "standard"
+    chosen = {k: v for k, v in (("rotation", rotation), ("encoding", encoding))
+              if ctx.get_parameter_source(k) is not ParameterSource.DEFAULT} | _model_sets(model_set)
+    overrides = BY_NAME[ablation].overrides
+    clash = [k for k in overrides if k in chosen and chosen[k] != overrides[k]]
+    if clash:
+        raise click.UsageError(f"--ablation {ablation} sets {', '.join(f'{k}={overrides[k]}' for k in clash)} itself; "
+                               f"drop the options that set {', '.join(clash)}")
     try:
-        model = ModelConfig(**{"rotation": rotation, "encoding": encoding, "use_objects": not no_objects,
-                               "use_pose": not no_pose, "use_context": not no_context, **_model_sets(model_set)})
+        model = ModelConfig(**{"rotation": rotation, "encoding": encoding, **overrides, **chosen})
     except (TypeError, ValueError) as e:
         raise ConfigError(f"model options: {e}") from None
-    run = run_train(_config(store, out, model, **kw), resume=resume, force=force)
+    run = run_train(_train_config(store, out, model, **recipe), resume=resume, force=force)
     click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
     click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
 
@@ -150,8 +156,6 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
     Baselines: the view prior v, the head direction from the pose keypoints, and v snapped to the
     nearest object within a cone. The table says whether the model beats each of them.
     """
-    from .evaluate import evaluate as run_eval, format_eval_table
-
     _log_setup()
     r = run_eval(store, checkpoint, split=split, force=force, device=device, batch_size=batch_size,
                  snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
@@ -166,27 +170,24 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
 @click.command()
 @click.option("--store", required=True, help="The store every ablation trains and tests on.")
 @click.option("--out", required=True, help="Folder for the runs (OUT/<row>/seed<k>) and ablation.{json,csv,png}.")
-@click.option("--rows", default=None, help="Comma-separated rows to run (default all): appearance, no-objects, "
-              "no-pose, no-ga3ce, full, no-egocentric, no-cyclotorsion, no-d3.")
+@click.option("--rows", default=None, help="Comma-separated rows to run (default all): " + ", ".join(BY_NAME) + ".")
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated seeds; the table shows mean +- std over them.")
 @click.option("--split", default="test", show_default=True, help="Split the rows are evaluated on.")
 @recipe_options
 @click.option("--force", is_flag=True, help="Retrain every row even if its run folder is complete.")
-def ablate(store, out, rows, seeds, split, force, model_set, **kw):
+def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
     """Train the paper's ablations and print Tables 4 and 5 beside the paper's numbers.
 
     Finished rows are reused and unfinished ones resumed, so rerunning the command continues.
     Writes OUT/ablation.json, OUT/ablation.csv and OUT/ablation.png (bar chart).
     """
-    from .ablate import ablate as run_ablate
-
     _log_setup()
     try:
         model = ModelConfig(**_model_sets(model_set))
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except (TypeError, ValueError) as e:
         raise ConfigError(f"ablate options: {e}") from None
-    base = _config(store, out, model, **kw)
+    base = _train_config(store, out, model, **recipe)
     summary = run_ablate(base, out, rows=[r.strip() for r in rows.split(",")] if rows else None,
                          seeds=seed_list, split=split, force=force)
     click.echo(summary["table"])

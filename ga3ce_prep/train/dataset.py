@@ -4,7 +4,7 @@
 view (3,), pose (30, 3) NaN rows = missing, head_pos (3,), gaze (3,), objects (n_i, 3), area (n_i,)
 and the store row `index`, all torch tensors (metres, camera frame). `collate` pads a list of
 samples into a `Batch` with a boolean object mask: to the batch's largest object count, or to a
-fixed N_max (168 for GFIE/CAD-120, 278 for GAFA), keeping the largest masks (by pixel area) when a
+fixed N_max (the dataset's `DatasetProfile.n_max`), keeping the largest masks (by pixel area) when a
 frame has more. `ContextDataset.batch(indices)` builds the same Batch straight from the arrays
 (vectorised gather; what the trainer uses). `BucketBatchSampler` groups frames of similar object
 counts so per-batch padding stays small.
@@ -29,11 +29,9 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from ..store import ContextStore, open_store
+from .profiles import DatasetProfile
 
 log = logging.getLogger("ga3ce_prep.train")
-
-# The paper's fixed object padding per dataset (GFIE and CAD-120: 168, GAFA: 278).
-N_MAX: dict[str, int] = {"gfie": 168, "cad120": 168, "gafa": 278}
 
 
 @dataclass
@@ -75,24 +73,6 @@ def store_fingerprint(store: ContextStore) -> str:
     return h.hexdigest()
 
 
-def _sorted_objects(store: ContextStore) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every frame's usable objects, largest mask first: (xyz (M',3) f32, area (M',), start (N,),
-    count (N,)). Non-finite objects and the objects of frames without a finite head are dropped."""
-    count = store.frames["obj_count"].astype(np.int64)
-    start = store.frames["obj_start"].astype(np.int64)
-    owner = np.repeat(np.arange(len(count)), count)
-    rows = (np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)) + np.repeat(start, count)
-    xyz = store.objects["xyz"][rows].astype(np.float32)
-    area = store.objects["area"][rows]
-    head_ok = np.isfinite(store.frames["head_pos"]).all(1)
-    keep = np.isfinite(xyz).all(1) & head_ok[owner]
-    order = np.lexsort((-area[keep].astype(np.float64), owner[keep]))
-    owner, xyz, area = owner[keep][order], xyz[keep][order], area[keep][order]
-    new_count = np.bincount(owner, minlength=len(count)).astype(np.int64)
-    new_start = np.cumsum(new_count) - new_count
-    return xyz, area, new_start, new_count
-
-
 class ContextDataset(Dataset):
     """Per-frame GA3CE inputs of one or more splits of a store (see the module docstring).
 
@@ -128,9 +108,7 @@ class ContextDataset(Dataset):
             log.info("%s: left out %d frames without a view prior and %d without ground-truth gaze",
                      s.path, self.n_no_view, self.n_no_gaze)
         self.rows = rows
-        if not hasattr(s, "_ga3ce_objects"):  # shared by every dataset built on this store
-            s._ga3ce_objects = _sorted_objects(s)
-        self.xyz, self.area, start, count = s._ga3ce_objects
+        self.xyz, self.area, start, count = s.usable_objects
         self.obj_start, self.obj_count = start[rows], count[rows]
         self.view = np.ascontiguousarray(f["view"][rows], np.float32)
         self.view /= np.linalg.norm(self.view, axis=1, keepdims=True)
@@ -140,8 +118,9 @@ class ContextDataset(Dataset):
         self.scene = np.asarray(f["scene"][rows])
 
     @property
-    def dataset_name(self) -> str:
-        return str(self.store.attrs.get("dataset", {}).get("name", ""))
+    def profile(self) -> DatasetProfile:
+        """The per-dataset constants of the store's dataset."""
+        return DatasetProfile.for_store(self.store)
 
     def __len__(self) -> int:
         return len(self.rows)

@@ -1,10 +1,9 @@
-"""The GA3CE training loop (the paper's recipe, DESIGN.md §3).
+"""The GA3CE training loop (the paper's recipe, DESIGN.md §3; every knob is a `TrainConfig` field).
 
-AdamW (lr 3e-4 by default: the paper's 1.4e-3 collapses to g = v with this post-LN transformer,
-docs/training.md; weight decay 0.1), a per-step schedule with 4 warm-up epochs then cosine decay,
-gradient clipping at L2 norm 0.1, batch 32, 20 epochs, the arccos loss, view-noise augmentation
-(on by default for GFIE stores). Seeded and deterministic on CPU: the batches, the augmentation
-and dropout of epoch e are drawn from (seed, e), so a resumed run matches an uninterrupted one.
+AdamW with a per-step schedule (linear warm-up, then cosine decay to 0), gradient clipping, the
+arccos loss and view-noise augmentation. Seeded and deterministic on CPU: the batches, the
+augmentation and the dropout of epoch e are drawn from (seed, e), so a resumed run matches an
+uninterrupted one.
 
 A run folder holds: config.json, last.pt (written atomically after every epoch, with the optimiser,
 for --resume), best.pt (lowest validation 3D MAE), history.csv and curves.png (loss and val MAE per
@@ -20,7 +19,7 @@ import os
 import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -28,50 +27,41 @@ from tqdm import tqdm
 
 from ..errors import ConfigError
 from ..model import GA3CE, ModelConfig, angular_loss
-from ..store import open_store
+from ..store import ContextStore, open_store
 from .augment import view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
 from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
 from .evaluate import predict
 from .plots import plot_curves
+from .profiles import DatasetProfile
 from .schedule import warmup_cosine_lr
 
 log = logging.getLogger("ga3ce_prep.train")
 
-VIEW_NOISE_DATASETS = ("gfie",)  # "auto" turns the augmentation on for these stores (paper: GFIE only)
-
 
 @dataclass
 class TrainConfig:
-    """Everything a training run depends on. Defaults are the paper's recipe.
+    """Everything a training run depends on (saved as config.json and in every checkpoint)."""
 
-    store / out: the store path and the run folder. epochs, batch_size, lr, weight_decay,
-    warmup_epochs, grad_clip: the recipe. view_noise: "auto" (on for GFIE stores), "on", "off";
-    view_noise_amplitude: a in eps ~ U[-a, a]^3. seed: every random draw. device: "cpu" | "cuda".
-    threads: torch CPU threads. n_max: pad objects to this fixed count (168 GFIE/CAD-120, 278 GAFA;
-    None = per-batch padding). bucket: group batches by object count. train_frames / val_frames:
-    use an evenly spaced subset (short runs). progress: show progress bars. model: ModelConfig.
-    """
-
-    store: str = ""
-    out: str = "runs/ga3ce"
-    epochs: int = 20
-    batch_size: int = 32
-    lr: float = 3e-4  # the paper: 1.4e-3, which collapses to g = v here (docs/training.md)
-    weight_decay: float = 0.1
-    warmup_epochs: float = 4.0
-    grad_clip: float = 0.1
-    view_noise: str = "auto"
-    view_noise_amplitude: float = 0.5
-    seed: int = 0
-    device: str = "cpu"
-    threads: int = 2
-    n_max: int | None = None
-    bucket: bool = True
-    train_frames: int | None = None
-    val_frames: int | None = None
-    progress: bool = True
-    model: ModelConfig = field(default_factory=ModelConfig)
+    store: str = ""  # the 3D context store to train on (from `ga3ce-prep run`)
+    out: str = "runs/ga3ce"  # the run folder
+    epochs: int = 20  # training epochs (the paper's 20)
+    batch_size: int = 32  # frames per batch (the paper: 32 on GFIE, 64 on GAFA)
+    lr: float = 3e-4  # peak AdamW learning rate, below the paper's: docs/training.md "Learning rate"
+    weight_decay: float = 0.1  # AdamW weight decay (the paper's)
+    warmup_epochs: float = 4.0  # linear warm-up over this many epochs (stepped per batch), then cosine decay to 0
+    grad_clip: float = 0.1  # clip the gradient's global L2 norm to this (the paper's)
+    view_noise: Literal["auto", "on", "off"] = "auto"  # augment v <- normalise(v + eps): on, off, or auto = as the paper on this dataset (DatasetProfile: on for GFIE)
+    view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
+    seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
+    device: Literal["cpu", "cuda"] = "cpu"  # where to train
+    threads: int = 2  # CPU threads of torch (keep at the number of free cores)
+    n_max: int | None = None  # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
+    bucket: bool = True  # group batches by object count (less padding per batch)
+    train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
+    val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
+    progress: bool = True  # progress bars (else one log line per epoch)
+    model: ModelConfig = field(default_factory=ModelConfig)  # architecture and ablation switches
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
@@ -93,8 +83,9 @@ class TrainConfig:
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
 
-    def uses_view_noise(self, dataset_name: str) -> bool:
-        return self.view_noise == "on" or (self.view_noise == "auto" and dataset_name in VIEW_NOISE_DATASETS)
+    def uses_view_noise(self, profile: DatasetProfile) -> bool:
+        """Whether to augment v when training on a store of the dataset `profile`."""
+        return self.view_noise == "on" or (self.view_noise == "auto" and profile.view_noise)
 
 
 def setup_torch(threads: int, device: str) -> torch.device:
@@ -124,12 +115,37 @@ def _write_history(history: list[dict[str, Any]], out: Path) -> None:
     plot_curves(history, out / "curves.png")
 
 
-def _val_mae(model: GA3CE, ds: ContextDataset | None, device: torch.device, n_max: int | None) -> float:
-    if ds is None or len(ds) == 0:
-        return float("nan")
-    pred = predict(model, ds, device=device, n_max=n_max)
-    cos = np.clip(np.sum(pred * ds.gaze, axis=1), -1, 1)
-    return float(np.degrees(np.arccos(cos)).mean())
+def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean angle in degrees between the unit vectors a and b (n, 3). (Not geometry.angular_error_deg:
+    that one re-normalises, which moves the last bits of the recorded validation figures.)"""
+    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1))).mean())
+
+
+def _splits(config: TrainConfig, store: ContextStore) -> tuple[ContextDataset, ContextDataset | None]:
+    """The training frames and the validation frames (None when the store has none)."""
+    train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
+    if len(train_ds) == 0:
+        raise ConfigError(f"{config.store}: no training frames with a view prior and ground-truth gaze "
+                          f"(splits: {store.split_names}); build the store from a dataset with a train split")
+    val_ds = ContextDataset(store, "val", max_frames=config.val_frames) if "val" in store.split_names else None
+    if val_ds is None or len(val_ds) == 0:
+        log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
+        return train_ds, None
+    return train_ds, val_ds
+
+
+def _appearance_only(out: Path, state: dict[str, Any], model: GA3CE, epochs: int, prior: float) -> Path:
+    """The "appearance only" run (use_context off): g = v has nothing to train, so last.pt and
+    best.pt hold the parameter-free model at the last epoch with the v prior's validation MAE, for
+    evaluate and ablate to read like any other run."""
+    history = [{"epoch": epochs - 1, "step": 0, "lr": 0.0, "train_loss": float("nan"), "train_mae": float("nan"),
+                "val_mae": prior, "val_prior_mae": prior, "seconds": 0.0, "samples_per_s": float("nan")}]
+    ckpt = {**state, "epoch": epochs - 1, "model": model.state_dict(), "history": history, "best_val": prior}
+    save_checkpoint(out / "last.pt", ckpt)
+    save_checkpoint(out / "best.pt", ckpt)
+    _write_history(history, out)
+    log.info("appearance only (use_context off): g = v, nothing to train")
+    return out
 
 
 def train_step(model: GA3CE, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
@@ -164,39 +180,25 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
         raise CheckpointError(f"{out} already holds a run (last.pt): pass --resume to continue it, "
                               "--force to overwrite it, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+
+    # the data, and the configuration as the run folder records it
     store = open_store(config.store)
     fingerprint = store_fingerprint(store)
-    train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
-    if len(train_ds) == 0:
-        raise ConfigError(f"{config.store}: no training frames with a view prior and ground-truth gaze "
-                          f"(splits: {store.split_names}); build the store from a dataset with a train split")
-    val_ds = ContextDataset(store, "val", max_frames=config.val_frames) if "val" in store.split_names else None
-    if val_ds is not None and len(val_ds) == 0:
-        val_ds = None
-    if val_ds is None:
-        log.warning("%s has no validation frames: best.pt will be the last epoch", config.store)
-    noise_on = config.uses_view_noise(train_ds.dataset_name)
+    train_ds, val_ds = _splits(config, store)
+    use_noise = config.uses_view_noise(train_ds.profile)
     cfg = config.to_dict()
-    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": noise_on,
+    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise,
                                                  "store_fingerprint": fingerprint}, indent=2))
 
+    # the model (initial weights drawn from the seed); appearance only has nothing to train
     torch.manual_seed(config.seed)
     model = GA3CE(config.model).to(device)
     state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
-    prior = np.degrees(np.arccos(np.clip(np.sum(val_ds.view * val_ds.gaze, 1), -1, 1))).mean() if val_ds else float("nan")
+    prior = _mean_angle_deg(val_ds.view, val_ds.gaze) if val_ds else float("nan")
+    if not config.model.use_context:
+        return _appearance_only(out, state, model, config.epochs, prior)
 
-    if not config.model.use_context:  # appearance only: g = v, nothing to learn
-        history = [{"epoch": config.epochs - 1, "step": 0, "lr": 0.0, "train_loss": float("nan"),
-                    "train_mae": float("nan"), "val_mae": float(prior), "val_prior_mae": float(prior),
-                    "seconds": 0.0, "samples_per_s": float("nan")}]
-        ckpt = {**state, "epoch": config.epochs - 1, "model": model.state_dict(), "history": history,
-                "best_val": float(prior)}
-        save_checkpoint(last_path, ckpt)
-        save_checkpoint(best_path, ckpt)
-        _write_history(history, out)
-        log.info("appearance only (use_context off): g = v, nothing to train")
-        return out
-
+    # the optimiser, batches by object count, the per-step schedule
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
     sampler = BucketBatchSampler(train_ds.obj_count if config.model.use_objects else np.zeros(len(train_ds)),
@@ -208,6 +210,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     best_val = math.inf
     start_epoch = 0
 
+    # continue from last.pt: weights, optimiser, history
     if resume and last_path.exists():
         ckpt = load_checkpoint(last_path)
         problems = check_checkpoint(ckpt, last_path, fingerprint, cfg, force=force)
@@ -224,7 +227,6 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     elif resume:
         log.warning("%s holds no last.pt: starting a new run", out)
 
-    use_noise = noise_on
     end_epoch = config.epochs if stop_after_epochs is None else min(config.epochs, start_epoch + stop_after_epochs)
     for epoch in range(start_epoch, end_epoch):
         sampler.set_epoch(epoch)
@@ -246,11 +248,13 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
             n_seen += len(idx)
             bar.set_postfix(loss=f"{loss.item():.4f}", mae=f"{np.degrees(sum_loss / n_seen):.2f}", lr=f"{lr:.2e}")
         seconds = time.perf_counter() - t0
+
+        # validate, keep the best, checkpoint every epoch, log
         model.eval()
-        val = _val_mae(model, val_ds, device, config.n_max)
+        val = _mean_angle_deg(predict(model, val_ds, device=device, n_max=config.n_max), val_ds.gaze) if val_ds else float("nan")
         row = {"epoch": epoch, "step": step, "lr": lr, "train_loss": sum_loss / n_seen,
                "train_mae": float(np.degrees(sum_loss / n_seen)), "val_mae": val,
-               "val_prior_mae": float(prior), "seconds": round(seconds, 2),
+               "val_prior_mae": prior, "seconds": round(seconds, 2),
                "samples_per_s": round(n_seen / seconds, 1)}
         history.append(row)
         improved = not (val >= best_val)  # NaN (no val split) counts as an improvement: best = last
