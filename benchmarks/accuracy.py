@@ -1,6 +1,6 @@
 """The synthetic-world accuracy benchmark: synth -> `ga3ce-prep run` -> ablate -> the criteria.
 
-Criteria (issue 5, DESIGN.md §5): with the default recipe, the full model's test 3D MAE is at most
+Criteria (issue 5): with the default recipe, the full model's test 3D MAE is at most
 60% of the v prior's (v = truth + 20 degrees of noise), and every ablation row is worse than the
 full model. The script prints the Tables 4/5 layout with the paper's numbers beside ours and a
 PASS/FAIL line per criterion, and writes OUT/accuracy.json.

@@ -141,7 +141,7 @@ def test_view_noise_shift():
     g = torch.Generator().manual_seed(1)
     out = view_noise(v, g)
     ang = angular_error_deg(out.numpy(), v.numpy())
-    assert 19.0 < ang.mean() < 25.0 and ang.max() < 61.0     # about 22 degrees (DESIGN.md §3)
+    assert 19.0 < ang.mean() < 25.0 and ang.max() < 61.0     # about 22 degrees (docs/paper.md)
     np.testing.assert_allclose(out.norm(dim=-1).numpy(), 1.0, atol=1e-6)
     torch.testing.assert_close(view_noise(v, torch.Generator().manual_seed(1)), out)
 

@@ -1,5 +1,5 @@
 """GA3CE (CVPR 2025) in torch: the egocentric transform, D3 encoding, the 3D gaze transformer and
-the MLP head, one concept per module under its paper name (DESIGN.md §3)."""
+the MLP head, one concept per module under its paper name (docs/paper.md)."""
 from .egocentric import EgocentricContext, egocentric_transform, pose_normalization
 from .encoding import ENCODINGS, PointEncoding, d3_encoding, fourier_features
 from .ga3ce import GA3CE, ModelConfig

@@ -1,5 +1,5 @@
 """GA3CE's egocentric transform: pose normalisation and the rotation of the 3D context into the
-frame where the view prior is z (DESIGN.md §3).
+frame where the view prior is z (docs/paper.md).
 
     t_pose = mean of the head joints 24..29,  s = 1 / ||J_a - J_b||  (HEAD_WIDTH_PAIR, the paper's
     "head width"),  v' = R v = z,  P'_pose = s R (P_pose - t_pose),  P'_obj = R (P_obj - t_object)

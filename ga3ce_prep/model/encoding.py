@@ -4,7 +4,7 @@
     D3:        enc(p) = gamma_dir(p / ||p||) ++ gamma_dist(||p||)
     standard:  enc(p) = gamma(p)     (the "no D3" ablation; same width)
 
-The paper does not give the Gaussian scales; they are named parameters (DESIGN.md §3: a unit scale
+The paper does not give the Gaussian scales; they are named parameters (docs/paper.md §2: a unit scale
 aliases pose distances of up to ~15 head widths, so distances use small scales). Scales are in
 cycles per unit of the encoded quantity: per unit direction component, per head width (pose), per
 metre (objects). B is drawn once from a seeded generator and kept as a buffer (saved with the

@@ -1,4 +1,4 @@
-"""The 3D gaze transformer and the MLP head (DESIGN.md §3).
+"""The 3D gaze transformer and the MLP head (docs/paper.md).
 
 An nn.Transformer (d_model 256, 2 heads, feed-forward 512, 3 encoder and 3 decoder layers, PyTorch
 defaults otherwise) whose encoder reads the object tokens and whose decoder reads one target

@@ -1,4 +1,4 @@
-"""The paper's ablations (Tables 4 and 5, DESIGN.md §3): one switch each, trained from the same
+"""The paper's ablations (Tables 4 and 5, docs/paper.md): one switch each, trained from the same
 store with the same recipe, evaluated on the same test frames, printed beside the paper's numbers.
 
 Because our store's view prior is not the paper's, rows are also compared as ratios: our 3D MAE /

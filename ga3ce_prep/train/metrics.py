@@ -1,9 +1,9 @@
-"""Gaze metrics in degrees (DESIGN.md §3; GAFA's conventions from research/gafa.md §4).
+"""Gaze metrics in degrees (docs/paper.md; GAFA's conventions from its `eval.py` and `models/utils.py`).
 
 3D MAE: mean angle between predicted and true directions. 2D MAE (GAFA): keep the camera-frame x
 and y of both vectors, re-normalise, take the angle; frames whose x-y part vanishes are skipped.
 Front / back (GAFA): front when the true gaze has z <= 0 (it points toward the camera). All means
-are plain per-frame means (GAFA's released code averages per batch; research/gafa.md §4).
+are plain per-frame means (GAFA's released code averages per batch in `models/gazenet.py`).
 """
 from __future__ import annotations
 

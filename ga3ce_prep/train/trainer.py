@@ -1,4 +1,4 @@
-"""The GA3CE training loop (the paper's recipe, DESIGN.md §3; every knob is a `TrainConfig` field).
+"""The GA3CE training loop (the paper's recipe, docs/paper.md; every knob is a `TrainConfig` field).
 
 AdamW with a per-step schedule (linear warm-up, then cosine decay to 0), gradient clipping, the
 arccos loss and view-noise augmentation. Seeded and deterministic on CPU: the batches, the
