@@ -213,6 +213,20 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
     np.testing.assert_array_equal(s.objects["xyz"], ref_objs)
 
 
+def test_turning_on_cache_depth_maps_keeps_the_depth_failure_records(synth_world, tmp_path):
+    data = tmp_path / "bad"
+    _corrupt(synth_world, data)
+    work = tmp_path / "work"
+    _run(data, tmp_path / "a.zarr", work_dir=work, shard_size=4)
+    maps = _run(data, tmp_path / "b.zarr", ["run.cache_depth_maps=true", "stages.objects.params.max_planes=3"],
+                work_dir=work, shard_size=4)
+    assert {s for s in STAGES if maps.computed_shards[s]} == {"depth", "objects"}  # depth again, to keep its maps
+    a, b = open_store(tmp_path / "a.zarr"), open_store(tmp_path / "b.zarr")
+    np.testing.assert_array_equal(a.frames["id"], b.frames["id"])
+    for name in a.failures:
+        np.testing.assert_array_equal(a.failures[name], b.failures[name], err_msg=name)
+
+
 def test_nan_intrinsics_drop_every_frame_with_a_clear_message(synth_world, tmp_path):
     data = tmp_path / "nank"
     shutil.copytree(synth_world, data)

@@ -176,7 +176,7 @@ def geometry_task(env: TaskEnv, shard: Shard, _upstream: Any = None) -> dict[str
     n_dropped = np.zeros(n, np.int32)
     xyz, area, score = [], [], []
     head_pos = np.full((n, 3), np.nan, np.float32)
-    depth_ok = ok_in if cached_depth is None else (ok_in & cached_depth["ok"])
+    depth_ok = ok_in if need["depth"] else (ok_in & cached_depth["ok"])  # recomputing: every input-ok frame
 
     def timed(stage: str, fn: Callable[[], Any], i: int) -> Any:
         t = time.perf_counter()
