@@ -21,7 +21,7 @@ from contextlib import ExitStack
 from typing import Any
 
 from .cache import Cache
-from .tasks import Shard, TaskEnv, geometry_task, input_task, stage_task, warm
+from .tasks import Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, warm
 
 TASK_STAGES: dict[str, tuple[str, ...]] = {
     "input": ("input",), "geometry": ("depth", "objects", "head"), "pose": ("pose",), "view": ("view",),
@@ -73,8 +73,8 @@ class _Bars:
 
 def execute(dsk: dict, keys: list, shards: list[Shard], cached: dict[str, int], workers: int | None = None,
             scheduler: str | None = None, progress: bool = True,
-            timing: dict[str, float] | None = None) -> list[dict[str, Any]]:
-    """Run the graph; returns the tasks' reports (stage -> computed, seconds, frames). `timing`
+            timing: dict[str, float] | None = None) -> list[list[StageReport]]:
+    """Run the graph; returns the tasks' reports (a list of StageReport per task). `timing`
     receives "compute_seconds": wall time from the workers being ready to the last task."""
     bars = _Bars(shards, cached, progress)
     timing = {} if timing is None else timing

@@ -193,12 +193,11 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         seconds = {s: 0.0 for s in STAGES}
         computed = {s: 0 for s in STAGES}
         computed_frames = {s: 0 for s in STAGES}
-        for rep in reports:
-            for stage, r in rep.items():
-                seconds[stage] += r["seconds"]
-                if r["computed"]:
-                    computed[stage] += 1
-                    computed_frames[stage] += r["frames"]
+        for r in (r for task in reports for r in task):
+            seconds[r.stage] += r.seconds
+            if r.computed:
+                computed[r.stage] += 1
+                computed_frames[r.stage] += r.frames
         cached_shards = {s: len(shards) - computed[s] for s in STAGES}
 
         run_key = stable_hash({"finalize": FINALIZE_VERSION, "schema": _schema_version(),
