@@ -185,15 +185,14 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         for s in shards:
             s.keys = shard_keys(conf, s.frames, data_root, idents)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.cache_depth_maps)
-        dsk, keys, cached = build_graph(env, shards)
-        timing: dict[str, float] = {}
-        reports = execute(dsk, keys, shards, cached, workers=workers, scheduler=scheduler, progress=progress,
-                          timing=timing)
+        tasks, cached = build_graph(env, shards)
+        reports, compute_seconds = execute(env, tasks, shards, cached, workers=workers, scheduler=scheduler,
+                                           progress=progress)
 
         seconds = {s: 0.0 for s in STAGES}
         computed = {s: 0 for s in STAGES}
         computed_frames = {s: 0 for s in STAGES}
-        for r in (r for task in reports for r in task):
+        for r in reports:
             seconds[r.stage] += r.seconds
             if r.computed:
                 computed[r.stage] += 1
@@ -209,7 +208,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         fin_seconds = time.perf_counter() - t_fin
     summary = _summary(out_s, conf, counts, seconds, computed, cached_shards, computed_frames, len(shards),
                        time.perf_counter() - t0, written, fin_seconds)
-    summary.extra["compute_seconds"] = timing.get("compute_seconds", 0.0)  # graph wall time, workers ready
+    summary.extra["compute_seconds"] = compute_seconds  # graph wall time, workers ready
     return summary
 
 
