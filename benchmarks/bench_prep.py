@@ -162,7 +162,7 @@ def workers_scaling(data: Path, base: Path, n: int) -> dict:
         shutil.rmtree(base / f"scale-{w}.zarr", ignore_errors=True)
         s = run_pipeline("synthetic", data, base / f"scale-{w}.zarr", workers=w, limit=n, work_dir=work,
                          shard_size=8, progress=False)
-        sec = s.extra["compute_seconds"]
+        sec = s.compute_seconds
         out[w] = {"frames": s.frames_total, "compute_seconds": sec, "frames_per_s": s.frames_total / sec,
                   "wall_seconds": s.wall_seconds}
     out["speedup"] = out[2]["frames_per_s"] / out[1]["frames_per_s"]
