@@ -35,25 +35,19 @@ from .graph import build_graph, execute
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
-FINALIZE_VERSION = "1"
+FINALIZE_VERSION = "2"  # 2: attrs["summary"] holds FinalizeCounts under its field names
 
 
 @dataclass
 class RunSummary:
-    """What a run did. Counts come from the store; per stage, `seconds_by_stage` is compute time
+    """What a run did. `counts` come from the store; per stage, `seconds_by_stage` is compute time
     summed over the shards computed in this run, `computed_frames` their frames, `cached_shards`
     those found in the cache; `compute_seconds` is the graph's wall time once the workers are ready."""
 
     store: str
     pipeline: str
-    frames_total: int
-    frames_kept: int
-    objects: int
+    counts: FinalizeCounts
     objects_per_frame: dict[str, float]
-    obj_count_hist: dict[str, int]
-    failures: dict[str, dict[str, int]]
-    dropped_by_stage: dict[str, int]
-    degraded_by_stage: dict[str, int]
     seconds_by_stage: dict[str, float]
     computed_shards: dict[str, int]
     cached_shards: dict[str, int]
@@ -62,40 +56,35 @@ class RunSummary:
     wall_seconds: float
     compute_seconds: float
     store_written: bool
-    masks_dropped_few_points: int = 0
-
-    @property
-    def frames_dropped(self) -> int:
-        return self.frames_total - self.frames_kept
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def format(self) -> str:
         """The end-of-run summary as text."""
-        o = self.objects_per_frame
+        c, o = self.counts, self.objects_per_frame
         lines = [
             f"store      {self.store}{'' if self.store_written else ' (already up to date)'}",
             f"pipeline   {self.pipeline}",
-            f"frames     {self.frames_kept} kept of {self.frames_total} ({self.frames_dropped} dropped) in {self.n_shards} shards",
-            f"objects    {self.objects} (per frame: mean {o['mean']:.1f}, median {o['median']:.0f}, "
-            f"min {o['min']:.0f}, max {o['max']:.0f}; {self.masks_dropped_few_points} masks dropped for too few depth points)",
+            f"frames     {c.frames_kept} kept of {c.frames_total} ({c.frames_dropped} dropped) in {self.n_shards} shards",
+            f"objects    {c.objects} (per frame: mean {o['mean']:.1f}, median {o['median']:.0f}, "
+            f"min {o['min']:.0f}, max {o['max']:.0f}; {c.masks_dropped_few_points} masks dropped for too few depth points)",
         ]
-        if self.failures:
+        if c.failures:
             lines.append("failures   stage     dropped degraded  by error")
             for stage in STAGES:
-                if stage in self.failures:
-                    errs = ", ".join(f"{k} {v}" for k, v in sorted(self.failures[stage].items()))
-                    lines.append(f"           {stage:<9} {self.dropped_by_stage.get(stage, 0):>7} "
-                                 f"{self.degraded_by_stage.get(stage, 0):>8}  {errs}")
+                if stage in c.failures:
+                    errs = ", ".join(f"{k} {v}" for k, v in sorted(c.failures[stage].items()))
+                    lines.append(f"           {stage:<9} {c.dropped_by_stage.get(stage, 0):>7} "
+                                 f"{c.degraded_by_stage.get(stage, 0):>8}  {errs}")
         else:
             lines.append("failures   none")
         lines.append("time       stage     computed  cached  seconds  ms/frame")
         for stage in STAGES:
-            c, k, s = self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0), self.seconds_by_stage.get(stage, 0.0)
+            n, k, s = self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0), self.seconds_by_stage.get(stage, 0.0)
             nf = self.computed_frames.get(stage, 0)
             per = f"{1000 * s / nf:8.2f}" if nf else "       -"
-            lines.append(f"           {stage:<9} {c:>8} {k:>7} {s:>8.2f}  {per}")
+            lines.append(f"           {stage:<9} {n:>8} {k:>7} {s:>8.2f}  {per}")
         lines.append(f"wall       {self.wall_seconds:.1f} s")
         return "\n".join(lines)
 
@@ -243,13 +232,10 @@ def _summarize(store: str, conf: PipelineConfig, n_shards: int, reports: list[St
             computed[r.stage] += 1
             computed_frames[r.stage] += r.frames
     return RunSummary(
-        store=store, pipeline=conf.file, frames_total=counts.frames_total, frames_kept=counts.frames_kept,
-        objects=counts.objects, objects_per_frame=_objects_per_frame(counts.obj_count_hist),
-        obj_count_hist=counts.obj_count_hist, failures=counts.failures, dropped_by_stage=counts.dropped_by_stage,
-        degraded_by_stage=counts.degraded_by_stage, seconds_by_stage={**seconds, "finalize": finalize},
-        computed_shards=computed, cached_shards={s: n_shards - computed[s] for s in STAGES},
-        computed_frames=computed_frames, n_shards=n_shards, wall_seconds=wall, compute_seconds=compute,
-        store_written=written, masks_dropped_few_points=counts.masks_dropped_few_points)
+        store=store, pipeline=conf.file, counts=counts, objects_per_frame=_objects_per_frame(counts.obj_count_hist),
+        seconds_by_stage={**seconds, "finalize": finalize}, computed_shards=computed,
+        cached_shards={s: n_shards - computed[s] for s in STAGES}, computed_frames=computed_frames,
+        n_shards=n_shards, wall_seconds=wall, compute_seconds=compute, store_written=written)
 
 
 def _objects_per_frame(hist: dict[str, int]) -> dict[str, float]:
