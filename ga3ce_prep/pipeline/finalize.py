@@ -108,20 +108,14 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
 
     pose = e["pose"]["pose"][keep]
     pose[~e["pose"]["ok"][keep]] = np.nan
-    gaze = stack("gaze", (3,))
-    eye, target = stack("eye", (3,)), stack("gaze_target", (3,))
-    # the ground-truth direction where the format gives only the two points (GFIE's definition)
-    d = target - eye
-    nrm = np.linalg.norm(d, axis=1, keepdims=True)
-    fill = ~np.isfinite(gaze).all(1) & np.isfinite(nrm[:, 0]) & (nrm[:, 0] > 0)
-    gaze[fill] = (d[fill] / nrm[fill]).astype(np.float32)
     frames = {
         "id": np.array([f.id for f in fr], dtype=str),
         "split": [f.split for f in fr], "scene": [f.scene for f in fr],
         "K": stack("K", (3, 3)), "image_size": np.array([f.image_size for f in fr], np.int32).reshape(len(fr), 2),
         "head_box": stack("head_box", (4,)), "body_box": stack("body_box", (4,)),
         "head_pos": e["head"]["head_pos"][keep], "pose": pose.reshape(len(fr), N_JOINTS, 3),
-        "view": e["view"]["view"][keep], "gaze": gaze, "eye": eye, "gaze_target": target,
+        "view": e["view"]["view"][keep], "gaze": stack("gaze", (3,)), "eye": stack("eye", (3,)),
+        "gaze_target": stack("gaze_target", (3,)),
         "obj_count": obj_count[keep],
     }
     objects = {"xyz": obj["xyz"][sel], "area": obj["area"][sel], "score": obj["score"][sel]}
