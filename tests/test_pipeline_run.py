@@ -1,5 +1,5 @@
 """`run_pipeline` end to end on the synthetic world: store contents, kill-and-resume, partial
-recomputation, the lock, sharding/worker invariance, bad inputs, and the info/show/export commands."""
+recomputation, the lock, sharding/worker invariance, bad inputs, and the store commands info/show/export."""
 import csv
 import os
 import shutil
