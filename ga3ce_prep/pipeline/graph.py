@@ -76,11 +76,11 @@ class _Bars:
             b.close()
 
 
-def execute(env: TaskEnv, tasks: list[Delayed], shards: list[Shard], cached: dict[str, int],
-            workers: int | None = None, scheduler: str | None = None,
+def execute(env: TaskEnv, shards: list[Shard], workers: int | None = None, scheduler: str | None = None,
             progress: bool = True) -> tuple[list[StageReport], float]:
-    """Run the tasks; returns their reports and the compute seconds (wall time from the workers
-    being ready, backends built, to the last task)."""
+    """Run the shards' missing tasks; returns their reports and the compute seconds (wall time from
+    the workers being ready, backends built, to the last task)."""
+    tasks, cached = build_graph(env, shards)
     bars = _Bars(shards, cached, progress)
     try:
         if not tasks:

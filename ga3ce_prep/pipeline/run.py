@@ -31,7 +31,7 @@ from ..store import SCHEMA_VERSION
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, finalize
-from .graph import build_graph, execute
+from .graph import execute
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
@@ -140,16 +140,14 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.cache_depth_maps)
-        tasks, cached = build_graph(env, shards)
-        reports, compute_seconds = execute(env, tasks, shards, cached, workers=workers, scheduler=scheduler,
-                                           progress=progress)
+        reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
         t_fin = time.perf_counter()
         counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
                                    progress=progress)
         fin_seconds = time.perf_counter() - t_fin
-    return _summarize(str(out_path), conf, len(shards), reports, counts, written,
-                      compute=compute_seconds, finalize=fin_seconds, wall=time.perf_counter() - t0)
+    return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
+                      finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
 
 
 def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
@@ -221,7 +219,7 @@ def provenance(conf: PipelineConfig, data_root: Path, **run: Any) -> dict[str, A
 
 
 def _summarize(store: str, conf: PipelineConfig, n_shards: int, reports: list[StageReport], counts: FinalizeCounts,
-               written: bool, compute: float, finalize: float, wall: float) -> RunSummary:
+               written: bool, compute_seconds: float, finalize_seconds: float, wall_seconds: float) -> RunSummary:
     """The RunSummary of the tasks' reports and finalize's counts."""
     seconds = {s: 0.0 for s in STAGES}
     computed = {s: 0 for s in STAGES}
@@ -233,9 +231,9 @@ def _summarize(store: str, conf: PipelineConfig, n_shards: int, reports: list[St
             computed_frames[r.stage] += r.frames
     return RunSummary(
         store=store, pipeline=conf.file, counts=counts, objects_per_frame=_objects_per_frame(counts.obj_count_hist),
-        seconds_by_stage={**seconds, "finalize": finalize}, computed_shards=computed,
+        seconds_by_stage={**seconds, "finalize": finalize_seconds}, computed_shards=computed,
         cached_shards={s: n_shards - computed[s] for s in STAGES}, computed_frames=computed_frames,
-        n_shards=n_shards, wall_seconds=wall, compute_seconds=compute, store_written=written)
+        n_shards=n_shards, wall_seconds=wall_seconds, compute_seconds=compute_seconds, store_written=written)
 
 
 def _objects_per_frame(hist: dict[str, int]) -> dict[str, float]:

@@ -185,7 +185,8 @@ def new_entry(stage: str, shard: Shard) -> StageEntry:
     """An empty entry of `stage` for `shard`, with its columns (module docstring)."""
     n = len(shard.frames)
     if stage == "depth":  # DepthMap
-        return StageEntry(stage, shard, lambda dm: {"valid_frac": dm.valid.mean(), "filled_frac": (dm.depth > 0).mean()},
+        return StageEntry(stage, shard,
+                          lambda dm: {"valid_frac": dm.valid.mean(), "filled_frac": (dm.depth > 0).mean()},
                           valid_frac=np.zeros(n, np.float32), filled_frac=np.zeros(n, np.float32))
     if stage == "objects":  # FrameObjects
         return StageEntry(stage, shard, lambda fo: {"count": len(fo.xyz), "n_dropped": fo.n_dropped, "xyz": fo.xyz,
