@@ -24,10 +24,10 @@ from dask import delayed
 from dask.delayed import Delayed
 
 from .cache import Cache
-from .tasks import Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, warm
+from .tasks import GEOMETRY, Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, warm
 
 TASK_STAGES: dict[str, tuple[str, ...]] = {
-    "input": ("input",), "geometry": ("depth", "objects", "head"), "pose": ("pose",), "view": ("view",),
+    "input": ("input",), "geometry": GEOMETRY, "pose": ("pose",), "view": ("view",),
 }
 BAR_LABELS = {"input": "input", "geometry": "depth+objects+head", "pose": "pose", "view": "view"}
 
