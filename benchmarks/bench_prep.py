@@ -166,8 +166,8 @@ def workers_scaling(data: Path, base: Path, n: int) -> dict:
         shutil.rmtree(base / f"scale-{w}.zarr", ignore_errors=True)
         s = run_pipeline("synthetic", data, base / f"scale-{w}.zarr", workers=w, limit=n, work_dir=work,
                          shard_size=8, progress=False)
-        sec = s.extra["compute_seconds"]
-        out[w] = {"frames": s.frames_total, "compute_seconds": sec, "frames_per_s": s.frames_total / sec,
+        sec = s.compute_seconds
+        out[w] = {"frames": s.counts.frames_total, "compute_seconds": sec, "frames_per_s": s.counts.frames_total / sec,
                   "wall_seconds": s.wall_seconds}
     out["speedup"] = out[2]["frames_per_s"] / out[1]["frames_per_s"]
     return out
@@ -180,7 +180,7 @@ def memory_run(data: str, out: str, n: int) -> None:
     shutil.rmtree(out, ignore_errors=True)
     shutil.rmtree(out + ".work", ignore_errors=True)
     s = run_pipeline("synthetic", data, out, limit=n, progress=False)
-    print(json.dumps({"frames": s.frames_total, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    print(json.dumps({"frames": s.counts.frames_total, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "wall_seconds": s.wall_seconds}))
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ga3ce_prep.datasets import open_dataset
+from ga3ce_prep.datasets.base import gaze_direction
 from ga3ce_prep.datasets.gafa import body_boxes, head_boxes
 from ga3ce_prep.datasets.safe_pickle import load_pickle
 from ga3ce_prep.errors import DatasetFormatError, FrameError
@@ -111,6 +112,14 @@ def test_cad120_normalised_boxes_and_mm_depth(tmp_path):
     d = load_depth(f.depth_path, f.depth_scale)
     assert d[0, 0] == 0 and d[5, 5] == pytest.approx(2.5)
 
+
+
+def test_gaze_direction_is_nan_where_eye_and_target_coincide_or_are_unknown():
+    eye = np.array([[0.0, 0, 1], [1, 1, 1], [np.nan, 0, 0]])
+    target = np.array([[0.0, 0, 3], [1, 1, 1], [0, 0, 1]])
+    g = gaze_direction(eye, target)
+    np.testing.assert_array_equal(g[0], [0, 0, 1])
+    assert np.isnan(g[1:]).all()
 
 def _body25(n, shift=0.0):
     kp = np.zeros((n, 25, 3), np.float32)

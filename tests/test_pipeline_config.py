@@ -95,7 +95,7 @@ def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
                      overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(tmp_path / "pose.npz")}}})
     st = open_store(tmp_path / "s.zarr")
     i = int(np.flatnonzero(st.frames["id"] == truth.frame_ids[0])[0])
-    assert s.frames_kept == 12 and s.degraded_by_stage == {"pose": 1}
+    assert s.counts.frames_kept == 12 and s.counts.degraded_by_stage == {"pose": 1}
     assert np.isnan(st.frames["pose"][i]).all()
     j = int(np.flatnonzero(st.frames["id"] == ids[0])[0])
     np.testing.assert_allclose(st.frames["pose"][j], truth.get(ids[0], maps=False).pose, atol=1e-6)

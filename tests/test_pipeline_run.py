@@ -1,5 +1,5 @@
 """`run_pipeline` end to end on the synthetic world: store contents, kill-and-resume, partial
-recomputation, the lock, sharding/worker invariance, bad inputs, and the info/show/export commands."""
+recomputation, the lock, sharding/worker invariance, bad inputs, and the store commands info/show/export."""
 import csv
 import os
 import shutil
@@ -54,10 +54,10 @@ def reference(synth_world, tmp_path_factory):
 def test_store_contents_and_provenance(synth_world, reference):
     out, summary = reference
     s = open_store(out)
-    assert summary.frames_total == 12 and summary.frames_kept == len(s) == 12
-    assert summary.n_shards == 4 and not summary.failures
+    assert summary.counts.frames_total == 12 and summary.counts.frames_kept == len(s) == 12
+    assert summary.n_shards == 4 and not summary.counts.failures
     assert set(s.split_names) == {"train", "val", "test"} and len(s.scene_names) == 3
-    assert s.frames["obj_count"].sum() == len(s.objects["xyz"]) == summary.objects > 0
+    assert s.frames["obj_count"].sum() == len(s.objects["xyz"]) == summary.counts.objects > 0
     np.testing.assert_array_equal(s.frames["obj_start"][1:], np.cumsum(s.frames["obj_count"])[:-1])
     assert np.isfinite(s.frames["pose"]).all() and np.isfinite(s.frames["head_pos"]).all()
     np.testing.assert_allclose(np.linalg.norm(s.frames["view"], axis=1), 1, atol=1e-5)
@@ -67,7 +67,7 @@ def test_store_contents_and_provenance(synth_world, reference):
     assert st["objects"]["backend"] == "geometric" and not st["objects"]["oracle"]
     assert st["view"]["params"]["mean_error_deg"] == 20.0 and st["objects"]["params"]["stride"] == 1
     assert s.attrs["dataset"]["name"] == "gfie" and len(s.attrs["pipeline"]["sha256"]) == 64
-    assert s.attrs["summary"]["frames"] == 12
+    assert s.attrs["summary"]["frames_kept"] == 12
     text = summary.format()
     assert "12 kept of 12" in text and "objects" in text and "depth" in text
 
@@ -191,7 +191,7 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
     broken = _corrupt(synth_world, data)
     summary = _run(data, tmp_path / "s.zarr")
     s, ref = open_store(tmp_path / "s.zarr"), open_store(reference[0])
-    assert summary.frames_kept == 12 - 5 and summary.frames_dropped == 5
+    assert summary.counts.frames_kept == 12 - 5 and summary.counts.frames_dropped == 5
     f = s.failures
     got = {fid: (st, err, msg, act) for fid, st, err, msg, act in
            zip(f["frame_id"], f["stage"], f["error"], f["message"], f["action"])}
@@ -204,7 +204,7 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
         assert got[fid][:2] == (stage, err), (fid, got[fid])
         assert frag in got[fid][2], got[fid][2]
         assert got[fid][3] == "dropped" and fid not in s.frames["id"]
-    assert summary.dropped_by_stage == {"input": 2, "depth": 1, "head": 2}
+    assert summary.counts.dropped_by_stage == {"input": 2, "depth": 1, "head": 2}
     # the other frames are exactly as in the clean run
     keep = np.isin(ref.frames["id"], s.frames["id"])
     for name in ("head_pos", "pose", "view", "obj_count", "K", "gaze"):
@@ -213,13 +213,27 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
     np.testing.assert_array_equal(s.objects["xyz"], ref_objs)
 
 
+def test_turning_on_cache_depth_maps_keeps_the_depth_failure_records(synth_world, tmp_path):
+    data = tmp_path / "bad"
+    _corrupt(synth_world, data)
+    work = tmp_path / "work"
+    _run(data, tmp_path / "a.zarr", work_dir=work, shard_size=4)
+    maps = _run(data, tmp_path / "b.zarr", ["run.cache_depth_maps=true", "stages.objects.params.max_planes=3"],
+                work_dir=work, shard_size=4)
+    assert {s for s in STAGES if maps.computed_shards[s]} == {"depth", "objects"}  # depth again, to keep its maps
+    a, b = open_store(tmp_path / "a.zarr"), open_store(tmp_path / "b.zarr")
+    np.testing.assert_array_equal(a.frames["id"], b.frames["id"])
+    for name in a.failures:
+        np.testing.assert_array_equal(a.failures[name], b.failures[name], err_msg=name)
+
+
 def test_nan_intrinsics_drop_every_frame_with_a_clear_message(synth_world, tmp_path):
     data = tmp_path / "nank"
     shutil.copytree(synth_world, data)
     np.save(data / "CameraKinect.npy", np.array([np.nan, 140.0, 80.0, 60.0]))
     summary = _run(data, tmp_path / "s.zarr", ["run.shard_size=12"])
     s = open_store(tmp_path / "s.zarr")
-    assert summary.frames_kept == 0 and len(s) == 0 and len(s.failures["frame_id"]) == 12
+    assert summary.counts.frames_kept == 0 and len(s) == 0 and len(s.failures["frame_id"]) == 12
     assert set(s.failures["stage"]) == {"input"}
     assert "intrinsics K" in s.failures["message"][0] and "fx, fy > 0" in s.failures["message"][0]
 

@@ -78,6 +78,15 @@ def float_column(cols: dict[str, list[str]], name: str, path: Path) -> np.ndarra
     return out
 
 
+def gaze_direction(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit ground-truth gaze normalise(target - eye) (GFIE's definition) from (N, 3)
+    3D eye and target points; NaN where they coincide or are unknown."""
+    d = target - eye
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, d / norm, np.nan)
+
+
 def intrinsics_from_fxfycxcy(path: Path) -> np.ndarray:
     """K (3, 3) float64 from a .npy holding [fx, fy, cx, cy] (GFIE's and CAD-120's CameraKinect.npy)."""
     try:

@@ -2,7 +2,8 @@
 
 An evaluation set: every frame is in the "test" split (GA3CE trains on GFIE and tests here).
 Boxes and the 2D gaze point are stored normalised to [0, 1]; the adapter converts them to pixels
-with each sequence's image size. eye_x/eye_y are never used (their convention is unknown).
+with each sequence's image size. eye_x/eye_y are never used (their convention is unknown). The
+ground-truth gaze is GFIE's normalise(gaze_XYZ - eye_XYZ).
 """
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..frames import FrameRef
-from .base import DatasetAdapter, first_image_size, float_column, intrinsics_from_fxfycxcy, read_csv_columns
+from .base import (DatasetAdapter, first_image_size, float_column, gaze_direction, intrinsics_from_fxfycxcy,
+                   read_csv_columns)
 
 COLUMNS: tuple[str, ...] = (
     "dataset_id", "frame_index", "x_initial", "y_initial", "w", "h", "eye_x", "eye_y",
@@ -51,10 +53,7 @@ class CAD120Adapter(DatasetAdapter):
         f = {c: float_column(cols, c, path) for c in REQUIRED if c not in ("dataset_id",)}
         eye = np.stack([f["eye_X"], f["eye_Y"], f["eye_Z"]], 1)
         target = np.stack([f["gaze_X"], f["gaze_Y"], f["gaze_Z"]], 1)
-        d = target - eye
-        norm = np.linalg.norm(d, axis=1, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gaze = np.where(norm > 0, d / norm, np.nan)
+        gaze = gaze_direction(eye, target)
         sizes: dict[str, tuple[int, int]] = {}
         for i in range(self._n):
             did, n = cols["dataset_id"][i], int(f["frame_index"][i])

@@ -2,7 +2,8 @@
 
 The 3D annotations (eye_X.., gaze_X..) share the depth maps' units. The repository never states
 them (probably metres); `units="auto"` checks the first depth map and the annotations and converts
-millimetres to metres if that is what they hold.
+millimetres to metres if that is what they hold. The ground-truth gaze (`FrameRef.gaze`) is
+normalise(gaze_XYZ - eye_XYZ), NaN where the two points coincide or are missing.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import numpy as np
 
 from ..errors import DatasetFormatError
 from ..frames import FrameRef
-from .base import DatasetAdapter, first_image_size, float_column, intrinsics_from_fxfycxcy, log, read_csv_columns
+from .base import (DatasetAdapter, first_image_size, float_column, gaze_direction, intrinsics_from_fxfycxcy,
+                   log, read_csv_columns)
 
 SPLIT_FOLDERS: dict[str, str] = {"train": "train", "valid": "val", "test": "test"}  # folder -> split
 # Columns the adapter reads (by name; other columns are ignored). Boxes and 2D points in pixels.
@@ -94,10 +96,7 @@ class GFIEAdapter(DatasetAdapter):
             sizes: dict[int, tuple[int, int]] = {}
             eye = np.stack([f["eye_X"], f["eye_Y"], f["eye_Z"]], 1) * xyz_scale
             target = np.stack([f["gaze_X"], f["gaze_Y"], f["gaze_Z"]], 1) * xyz_scale
-            d = target - eye
-            norm = np.linalg.norm(d, axis=1, keepdims=True)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                gaze = np.where(norm > 0, d / norm, np.nan)
+            gaze = gaze_direction(eye, target)
             for i in range(n):
                 sid, fnum = int(scene_ids[i]), int(frame_nums[i])
                 rgb = self.root / "rgb" / folder / f"scene{sid}" / f"{fnum:04d}.jpg"

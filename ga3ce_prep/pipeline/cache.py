@@ -93,6 +93,11 @@ class Cache:
     def __init__(self, root: str | Path):
         self.root = Path(root)
 
+    def remove_temporaries(self) -> None:
+        """Remove the temporary files a killed run left (only while holding the run lock)."""
+        for tmp in self.root.glob("*/*/.*.tmp"):
+            tmp.unlink(missing_ok=True)
+
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / key[:2] / f"{key}.npz"
 

@@ -1,8 +1,8 @@
-"""The pipeline's commands: `run`, `info`, `show`, `export` (registered in ga3ce_prep/cli.py)."""
+"""The pipeline's command: `run` (registered in ga3ce_prep/cli.py; the store commands are in
+ga3ce_prep/store_cli.py)."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import click
@@ -50,47 +50,3 @@ def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overri
     click.echo(s.format())
     if summary_json:
         Path(summary_json).write_text(json.dumps(s.as_dict(), indent=2))
-
-
-@click.command("info")
-@click.argument("store", type=click.Path())
-@click.option("--failures", "max_failures", type=int, default=8, show_default=True,
-              help="How many failure messages to list.")
-@click.option("--json", "as_json", is_flag=True, help="Print the root attributes (provenance, summary) as JSON instead.")
-def info(store, max_failures, as_json):
-    """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures."""
-    from ..store import open_store
-    from .inspect import describe_store
-
-    s = open_store(store)
-    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures))
-
-
-@click.command("show")
-@click.argument("store", type=click.Path())
-@click.argument("frame_id")
-@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False),
-              help="F.png: the image with head box, projected objects, t_object, v and ground-truth gaze "
-                   "arrows; F.ply: the 3D context as a point set (Open3D).")
-@click.option("--data", type=click.Path(file_okay=False), default=None,
-              help="Dataset root, if it moved since the store was made (for the image and depth).")
-def show(store, frame_id, out, data):
-    """Draw one frame's 3D context as a PNG, or write it as a PLY point set."""
-    from ..store import open_store
-    from ..viz import show as show_frame
-
-    path = show_frame(open_store(store), frame_id, out, data)
-    click.echo(f"wrote {path}")
-
-
-@click.command("export")
-@click.argument("store", type=click.Path())
-@click.argument("out", type=click.Path(dir_okay=False))
-@click.option("--format", "fmt", type=click.Choice(["hdf5"]), default="hdf5", show_default=True,
-              help="Output format (HDF5: the store's groups and arrays, names unchanged).")
-def export(store, out, fmt):
-    """Export a store's arrays to HDF5 for other trainers (same names, shapes and dtypes)."""
-    from .export import export_hdf5
-
-    path = export_hdf5(store, out)
-    click.echo(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB)")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import shutil
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,23 +32,21 @@ from .tasks import Shard
 
 @dataclass
 class FinalizeCounts:
-    """What finalize wrote: counts only (deterministic, they go into the store's attrs)."""
+    """What finalize wrote: counts only (deterministic). The store's attrs["summary"] holds them
+    under these names."""
 
-    frames_total: int = 0
-    frames_kept: int = 0
+    frames_total: int = 0                                              # frames in the dataset (or --limit)
+    frames_kept: int = 0                                               # frames in the store
     objects: int = 0
-    obj_count_hist: dict[str, int] = field(default_factory=dict)   # objects per frame -> frames
+    obj_count_hist: dict[str, int] = field(default_factory=dict)       # objects per frame -> frames
     failures: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> error class -> n
     dropped_by_stage: dict[str, int] = field(default_factory=dict)
     degraded_by_stage: dict[str, int] = field(default_factory=dict)
     masks_dropped_few_points: int = 0
 
-    def as_attrs(self) -> dict[str, Any]:
-        return {"frames": self.frames_kept, "frames_in_dataset": self.frames_total,
-                "frames_dropped": self.frames_total - self.frames_kept, "objects": self.objects,
-                "objects_per_frame_hist": self.obj_count_hist, "failures": self.failures,
-                "dropped_by_stage": self.dropped_by_stage, "degraded_by_stage": self.degraded_by_stage,
-                "masks_dropped_few_points": self.masks_dropped_few_points}
+    @property
+    def frames_dropped(self) -> int:
+        return self.frames_total - self.frames_kept
 
 
 def _entries(cache: Cache, shard: Shard) -> dict[str, dict[str, np.ndarray]]:
@@ -110,20 +108,14 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
 
     pose = e["pose"]["pose"][keep]
     pose[~e["pose"]["ok"][keep]] = np.nan
-    gaze = stack("gaze", (3,))
-    eye, target = stack("eye", (3,)), stack("gaze_target", (3,))
-    # the ground-truth direction where the format gives only the two points (GFIE's definition)
-    d = target - eye
-    nrm = np.linalg.norm(d, axis=1, keepdims=True)
-    fill = ~np.isfinite(gaze).all(1) & np.isfinite(nrm[:, 0]) & (nrm[:, 0] > 0)
-    gaze[fill] = (d[fill] / nrm[fill]).astype(np.float32)
     frames = {
         "id": np.array([f.id for f in fr], dtype=str),
         "split": [f.split for f in fr], "scene": [f.scene for f in fr],
         "K": stack("K", (3, 3)), "image_size": np.array([f.image_size for f in fr], np.int32).reshape(len(fr), 2),
         "head_box": stack("head_box", (4,)), "body_box": stack("body_box", (4,)),
         "head_pos": e["head"]["head_pos"][keep], "pose": pose.reshape(len(fr), N_JOINTS, 3),
-        "view": e["view"]["view"][keep], "gaze": gaze, "eye": eye, "gaze_target": target,
+        "view": e["view"]["view"][keep], "gaze": stack("gaze", (3,)), "eye": stack("eye", (3,)),
+        "gaze_target": stack("gaze_target", (3,)),
         "obj_count": obj_count[keep],
     }
     objects = {"xyz": obj["xyz"][sel], "area": obj["area"][sel], "score": obj["score"][sel]}
@@ -141,9 +133,9 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
     whether anything was written (False: `out` was already this run's store)."""
     from tqdm import tqdm
 
-    existing = read_run_key(out)
-    if existing == run_key:
-        return FinalizeCounts(**existing_counts(out)), False
+    done = _finished_counts(out, run_key)
+    if done is not None:
+        return done, False
     partial = work / "partial.zarr"
     if partial.exists():
         shutil.rmtree(partial)
@@ -160,7 +152,7 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
                                     zip(("frame_id", "stage", "error", "message", "action"), cols)})
         fault("finalize.shard")
     counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
-    attrs = {**attrs, "summary": counts.as_attrs(), "run": {**attrs.get("run", {}), "key": run_key}}
+    attrs = {**attrs, "summary": asdict(counts), "run": {**attrs.get("run", {}), "key": run_key}}
     writer.close(attrs)
     _fsync_tree(partial)
     old = work / "previous.zarr"
@@ -185,23 +177,14 @@ def _split_code(split: str) -> int:
         raise StoreError(f"split {split!r} is not one of {list(SPLITS)} (adapter bug)") from None
 
 
-def read_run_key(out: Path) -> str | None:
-    """The run key of a finished store at `out`, or None."""
+def _finished_counts(out: Path, run_key: str) -> FinalizeCounts | None:
+    """The counts of the store at `out` if it is a finished store of this run key, else None."""
     try:
         import zarr
 
         attrs = dict(zarr.open_group(str(out), mode="r").attrs)
     except Exception:  # noqa: BLE001 - no store, or not a store
         return None
-    return (attrs.get("run") or {}).get("key")
-
-
-def existing_counts(out: Path) -> dict[str, Any]:
-    import zarr
-
-    s = dict(zarr.open_group(str(out), mode="r").attrs).get("summary", {})
-    return {"frames_total": s.get("frames_in_dataset", 0), "frames_kept": s.get("frames", 0),
-            "objects": s.get("objects", 0), "obj_count_hist": s.get("objects_per_frame_hist", {}),
-            "failures": s.get("failures", {}), "dropped_by_stage": s.get("dropped_by_stage", {}),
-            "degraded_by_stage": s.get("degraded_by_stage", {}),
-            "masks_dropped_few_points": s.get("masks_dropped_few_points", 0)}
+    if (attrs.get("run") or {}).get("key") != run_key:
+        return None
+    return FinalizeCounts(**attrs["summary"])

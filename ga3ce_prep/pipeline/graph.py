@@ -1,10 +1,11 @@
 """The dask graph over shards and its execution, with one progress bar per task kind.
 
-Per shard, only the tasks whose cache entries are missing enter the graph:
+Per shard, only the tasks whose cache entries are missing enter the graph, as `dask.delayed`
+calls named `<kind>-<shard index>`:
 
-    ("input", i) --> ("geometry", i)   depth, objects, head
-               \\-> ("pose", i)
-               \\-> ("view", i)
+    input-i --> geometry-i   depth, objects, head
+           \\-> pose-i
+           \\-> view-i
 
 Schedulers: the local threaded scheduler by default (`workers=None`); `workers=N` starts a
 `distributed.LocalCluster` of N single-threaded worker processes (parallelism without the GIL:
@@ -18,36 +19,39 @@ import os
 import time
 import warnings
 from contextlib import ExitStack
-from typing import Any
+
+from dask import delayed
+from dask.delayed import Delayed
 
 from .cache import Cache
-from .tasks import Shard, TaskEnv, geometry_task, input_task, stage_task, warm
+from .tasks import GEOMETRY, Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, warm
 
 TASK_STAGES: dict[str, tuple[str, ...]] = {
-    "input": ("input",), "geometry": ("depth", "objects", "head"), "pose": ("pose",), "view": ("view",),
+    "input": ("input",), "geometry": GEOMETRY, "pose": ("pose",), "view": ("view",),
 }
 BAR_LABELS = {"input": "input", "geometry": "depth+objects+head", "pose": "pose", "view": "view"}
 
 
-def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[dict, list, dict[str, int]]:
-    """(dask graph, its output keys, frames already cached per task kind)."""
+def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[str, int]]:
+    """(the tasks to run, frames already cached per task kind)."""
     cache = Cache(env.cache_root)
-    dsk: dict = {}
+    tasks: list[Delayed] = []
     cached = {k: 0 for k in TASK_STAGES}
     for s in shards:
         need = {kind: any(not cache.has(st, s.keys[st]) for st in stages) for kind, stages in TASK_STAGES.items()}
         for kind in TASK_STAGES:
             if not need[kind]:
                 cached[kind] += len(s.frames)
-        up = ("input", s.index) if need["input"] else None
+        up = None
         if need["input"]:
-            dsk[("input", s.index)] = (input_task, env, s)
+            up = delayed(input_task)(env, s, dask_key_name=f"input-{s.index}")
+            tasks.append(up)
         if need["geometry"]:
-            dsk[("geometry", s.index)] = (geometry_task, env, s, up)
+            tasks.append(delayed(geometry_task)(env, s, up, dask_key_name=f"geometry-{s.index}"))
         for kind in ("pose", "view"):
             if need[kind]:
-                dsk[(kind, s.index)] = (stage_task, env, kind, s, up)
-    return dsk, list(dsk), cached
+                tasks.append(delayed(stage_task)(env, kind, s, up, dask_key_name=f"{kind}-{s.index}"))
+    return tasks, cached
 
 
 class _Bars:
@@ -62,52 +66,48 @@ class _Bars:
                              position=i, disable=not progress, leave=True, dynamic_ncols=True)
                      for i, k in enumerate(TASK_STAGES)}
 
-    def done(self, key: tuple) -> None:
-        kind, index = key
-        self.bars[kind].update(self.size[index])
+    def done(self, key: str) -> None:
+        """Task `<kind>-<shard index>` finished."""
+        kind, index = key.rsplit("-", 1)
+        self.bars[kind].update(self.size[int(index)])
 
     def close(self) -> None:
         for b in self.bars.values():
             b.close()
 
 
-def execute(dsk: dict, keys: list, shards: list[Shard], cached: dict[str, int], workers: int | None = None,
-            scheduler: str | None = None, progress: bool = True,
-            timing: dict[str, float] | None = None) -> list[dict[str, Any]]:
-    """Run the graph; returns the tasks' reports (stage -> computed, seconds, frames). `timing`
-    receives "compute_seconds": wall time from the workers being ready to the last task."""
+def execute(env: TaskEnv, shards: list[Shard], workers: int | None = None, scheduler: str | None = None,
+            progress: bool = True) -> tuple[list[StageReport], float]:
+    """Run the shards' missing tasks; returns their reports and the compute seconds (wall time from
+    the workers being ready, backends built, to the last task)."""
+    tasks, cached = build_graph(env, shards)
     bars = _Bars(shards, cached, progress)
-    timing = {} if timing is None else timing
     try:
-        if not keys:
-            timing["compute_seconds"] = 0.0
-            return []
+        if not tasks:
+            return [], 0.0
         if workers is None and scheduler is None:
-            return _execute_local(dsk, keys, bars, timing)
-        return _execute_distributed(dsk, keys, bars, workers, scheduler, timing)
+            return _execute_local(env, tasks, bars)
+        return _execute_distributed(env, tasks, bars, workers, scheduler)
     finally:
         bars.close()
 
 
-def _execute_local(dsk: dict, keys: list, bars: _Bars, timing: dict[str, float]) -> list[dict[str, Any]]:
-    import dask.threaded
+def _execute_local(env: TaskEnv, tasks: list[Delayed], bars: _Bars) -> tuple[list[StageReport], float]:
+    import dask
     from dask.callbacks import Callback
 
-    def posttask(key, result, dsk_, state, worker_id):
+    def posttask(key, result, dsk, state, worker_id):
         bars.done(key)
 
-    env = next((t[1] for t in dsk.values() if isinstance(t[1], TaskEnv)), None)
-    if env is not None:
-        warm(env)
+    warm(env)
     t0 = time.perf_counter()
     with Callback(posttask=posttask):
-        results = dask.threaded.get(dsk, keys, num_workers=os.cpu_count() or 1)
-    timing["compute_seconds"] = time.perf_counter() - t0
-    return list(results)
+        results = dask.compute(*tasks, scheduler="threads", num_workers=os.cpu_count() or 1)
+    return [r for task in results for r in task], time.perf_counter() - t0
 
 
-def _execute_distributed(dsk: dict, keys: list, bars: _Bars, workers: int | None,
-                         scheduler: str | None, timing: dict[str, float]) -> list[dict[str, Any]]:
+def _execute_distributed(env: TaskEnv, tasks: list[Delayed], bars: _Bars, workers: int | None,
+                         scheduler: str | None) -> tuple[list[StageReport], float]:
     from distributed import Client, LocalCluster, as_completed
 
     with ExitStack() as stack:
@@ -122,15 +122,10 @@ def _execute_distributed(dsk: dict, keys: list, bars: _Bars, workers: int | None
             client = stack.enter_context(Client(cluster))
         if workers:
             client.wait_for_workers(int(workers))
-        env = next((t[1] for t in dsk.values() if isinstance(t[1], TaskEnv)), None)
-        if env is not None:
-            client.run(warm, env)  # imports (Open3D) in every worker before the clock starts
+        client.run(warm, env)  # imports (Open3D) in every worker before the clock starts
         t0 = time.perf_counter()
-        futures = client.get(dsk, keys, sync=False)
-        key_of = {f.key: k for f, k in zip(futures, keys)}
-        results = []
-        for fut, res in as_completed(futures, with_results=True):
-            bars.done(key_of.get(fut.key, fut.key))
-            results.append(res)
-        timing["compute_seconds"] = time.perf_counter() - t0
-        return results
+        reports = []
+        for fut, res in as_completed(client.compute(tasks), with_results=True):
+            bars.done(fut.key)
+            reports += res
+        return reports, time.perf_counter() - t0

@@ -1,92 +1,90 @@
 """`run_pipeline`: dataset -> shards -> dask graph of stage tasks -> finalize -> store.
 
 Order of a run (nothing is computed before every check has passed):
-1. load and validate the pipeline; check backends and model/data files (config.py);
-2. open the dataset (structural errors stop here) and list its frames (`limit`: the first N);
-3. take the output's lock (lock.py), cut the frames into shards and compute every cache key;
-4. run the missing stage tasks on dask (graph.py, tasks.py), one progress bar per task kind;
-5. finalize the store from the cache (finalize.py) and return a RunSummary.
+1. `_checked_config`: load and validate the pipeline; check backends and model/data files
+   (config.py), the run options and the output path;
+2. `_open_frames`: open the dataset (structural errors stop here) and list its frames (`limit`:
+   the first N);
+3. `_make_shards`: under the output's lock (lock.py), cut the frames into shards and compute every
+   cache key;
+4. `execute`: run the missing stage tasks on dask (graph.py, tasks.py), one progress bar per task kind;
+5. `finalize`: write the store from the cache (finalize.py); `_summarize` returns a RunSummary.
 
 The work directory (default `<out>.work/`) holds the lock, the cache and finalize's scratch; keep it
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
 """
 from __future__ import annotations
 
+import itertools
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef
 from ..stages import STAGES, UPSTREAM, backend_class
+from ..store import SCHEMA_VERSION
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, finalize
-from .graph import build_graph, execute
+from .graph import execute
 from .lock import RunLock
-from .tasks import Shard, TaskEnv
+from .tasks import Shard, StageReport, TaskEnv
 
-FINALIZE_VERSION = "1"
+FINALIZE_VERSION = "2"  # 2: attrs["summary"] holds FinalizeCounts under its field names
 
 
 @dataclass
 class RunSummary:
-    """What a run did. Counts come from the store; seconds are compute time summed over the shards
-    computed in this run (per stage), `cached_shards` those found in the cache."""
+    """What a run did. `counts` come from the store; per stage, `seconds_by_stage` is compute time
+    summed over the shards computed in this run, `computed_frames` their frames, `cached_shards`
+    those found in the cache; `compute_seconds` is the graph's wall time once the workers are ready."""
 
     store: str
     pipeline: str
-    frames_total: int
-    frames_kept: int
-    objects: int
+    counts: FinalizeCounts
     objects_per_frame: dict[str, float]
-    obj_count_hist: dict[str, int]
-    failures: dict[str, dict[str, int]]
-    dropped_by_stage: dict[str, int]
-    degraded_by_stage: dict[str, int]
     seconds_by_stage: dict[str, float]
     computed_shards: dict[str, int]
     cached_shards: dict[str, int]
+    computed_frames: dict[str, int]
     n_shards: int
     wall_seconds: float
+    compute_seconds: float
     store_written: bool
-    masks_dropped_few_points: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def frames_dropped(self) -> int:
-        return self.frames_total - self.frames_kept
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def format(self) -> str:
         """The end-of-run summary as text."""
-        o = self.objects_per_frame
+        c, o = self.counts, self.objects_per_frame
         lines = [
             f"store      {self.store}{'' if self.store_written else ' (already up to date)'}",
             f"pipeline   {self.pipeline}",
-            f"frames     {self.frames_kept} kept of {self.frames_total} ({self.frames_dropped} dropped) in {self.n_shards} shards",
-            f"objects    {self.objects} (per frame: mean {o['mean']:.1f}, median {o['median']:.0f}, "
-            f"min {o['min']:.0f}, max {o['max']:.0f}; {self.masks_dropped_few_points} masks dropped for too few depth points)",
+            f"frames     {c.frames_kept} kept of {c.frames_total} ({c.frames_dropped} dropped) in {self.n_shards} shards",
+            f"objects    {c.objects} (per frame: mean {o['mean']:.1f}, median {o['median']:.0f}, "
+            f"min {o['min']:.0f}, max {o['max']:.0f}; {c.masks_dropped_few_points} masks dropped for too few depth points)",
         ]
-        if self.failures:
+        if c.failures:
             lines.append("failures   stage     dropped degraded  by error")
             for stage in STAGES:
-                if stage in self.failures:
-                    errs = ", ".join(f"{k} {v}" for k, v in sorted(self.failures[stage].items()))
-                    lines.append(f"           {stage:<9} {self.dropped_by_stage.get(stage, 0):>7} "
-                                 f"{self.degraded_by_stage.get(stage, 0):>8}  {errs}")
+                if stage in c.failures:
+                    errs = ", ".join(f"{k} {v}" for k, v in sorted(c.failures[stage].items()))
+                    lines.append(f"           {stage:<9} {c.dropped_by_stage.get(stage, 0):>7} "
+                                 f"{c.degraded_by_stage.get(stage, 0):>8}  {errs}")
         else:
             lines.append("failures   none")
         lines.append("time       stage     computed  cached  seconds  ms/frame")
         for stage in STAGES:
-            c, k, s = self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0), self.seconds_by_stage.get(stage, 0.0)
-            nf = self.extra.get("computed_frames", {}).get(stage, 0)
+            n, k, s = self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0), self.seconds_by_stage.get(stage, 0.0)
+            nf = self.computed_frames.get(stage, 0)
             per = f"{1000 * s / nf:8.2f}" if nf else "       -"
-            lines.append(f"           {stage:<9} {c:>8} {k:>7} {s:>8.2f}  {per}")
+            lines.append(f"           {stage:<9} {n:>8} {k:>7} {s:>8.2f}  {per}")
         lines.append(f"wall       {self.wall_seconds:.1f} s")
         return "\n".join(lines)
 
@@ -120,12 +118,6 @@ def shard_keys(conf: PipelineConfig, frames: list[FrameRef], data_root: Path,
     return keys
 
 
-def default_work_dir(out: str) -> Path:
-    if "://" in out:
-        return Path.cwd() / ".ga3ce-work" / stable_hash(out)[:16]
-    return Path(out.rstrip("/") + ".work")
-
-
 def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: str | Path, *,
                  workers: int | None = None, scheduler: str | None = None, shard_size: int | None = None,
                  limit: int | None = None, work_dir: str | Path | None = None,
@@ -140,9 +132,28 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     """
     t0 = time.perf_counter()
     data_root = Path(data).resolve()
-    out_s = str(out)
-    if "://" not in out_s:
-        out_s = str(Path(out_s).resolve())
+    conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers)
+    frames = _open_frames(conf, data_root, limit)
+    work = Path(work_dir) if work_dir else Path(f"{out_path}.work")
+    with RunLock(work, str(out_path)):
+        cache = Cache(work / "cache")
+        cache.remove_temporaries()  # left by a killed run; we hold the lock
+        shards = _make_shards(conf, frames, data_root)
+        env = TaskEnv(cache.root, data_root, conf.stages, conf.cache_depth_maps)
+        reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
+        attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
+        t_fin = time.perf_counter()
+        counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
+                                   progress=progress)
+        fin_seconds = time.perf_counter() - t_fin
+    return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
+                      finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
+
+
+def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
+                    overrides: list[str] | dict[str, Any] | None, shard_size: int | None,
+                    workers: int | None) -> tuple[PipelineConfig, Path]:
+    """The validated pipeline (run options applied) and the output's absolute path."""
     conf = load_pipeline(pipeline, data_root, overrides)
     if shard_size is not None:
         if shard_size < 1:
@@ -150,74 +161,46 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         conf.shard_size = int(shard_size)
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be at least 1, not {workers}")
-    if "://" in out_s:
-        raise ConfigError(f"--out {out_s}: remote stores are not supported by `run` yet (finalize renames a "
+    if "://" in str(out):
+        raise ConfigError(f"--out {out}: remote stores are not supported by `run` yet (finalize renames a "
                           "local directory into place); write locally and copy the store")
-    out_path = Path(out_s)
+    out_path = Path(out).resolve()
     if out_path.exists() and not (out_path / "zarr.json").is_file():
         raise StoreError(f"--out {out_path} exists and is not a ga3ce-prep store; choose another path or remove it")
+    return conf, out_path
 
+
+def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> list[FrameRef]:
+    """The dataset's frames (the first `limit`), in the adapter's order; ids checked unique."""
     from ..datasets import open_dataset
 
     try:
         adapter = open_dataset(conf.dataset_format, data_root, **conf.dataset_options)
     except TypeError as e:
         raise ConfigError(f"dataset.options: {e} (see docs/datasets.md for the {conf.dataset_format} options)") from None
-    frames: list[FrameRef] = []
-    for f in adapter.frames():
-        if limit is not None and len(frames) >= limit:
-            break
-        frames.append(f)
+    frames = list(itertools.islice(adapter.frames(), None if limit is None else max(limit, 0)))
     if not frames:
         raise DatasetFormatError(f"{data_root}: the {conf.dataset_format} adapter found no frames")
-    ids = [f.id for f in frames]
-    if len(set(ids)) != len(ids):
+    if len({f.id for f in frames}) != len(frames):
         raise DatasetFormatError(f"{data_root}: frame ids are not unique (adapter bug)")
-
-    work = Path(work_dir) if work_dir else default_work_dir(out_s)
-    with RunLock(work, out_s):
-        cache = Cache(work / "cache")
-        for tmp in cache.root.glob("*/*/.*.tmp") if cache.root.exists() else []:
-            tmp.unlink(missing_ok=True)  # left by a killed run; we hold the lock
-        idents = {s: stage_identity(conf, s) for s in STAGES}
-        k = conf.shard_size
-        shards = [Shard(i, frames[j:j + k]) for i, j in enumerate(range(0, len(frames), k))]
-        for s in shards:
-            s.keys = shard_keys(conf, s.frames, data_root, idents)
-        env = TaskEnv(cache.root, data_root, conf.stages, conf.cache_depth_maps)
-        dsk, keys, cached = build_graph(env, shards)
-        timing: dict[str, float] = {}
-        reports = execute(dsk, keys, shards, cached, workers=workers, scheduler=scheduler, progress=progress,
-                          timing=timing)
-
-        seconds = {s: 0.0 for s in STAGES}
-        computed = {s: 0 for s in STAGES}
-        computed_frames = {s: 0 for s in STAGES}
-        for rep in reports:
-            for stage, r in rep.items():
-                seconds[stage] += r["seconds"]
-                if r["computed"]:
-                    computed[stage] += 1
-                    computed_frames[stage] += r["frames"]
-        cached_shards = {s: len(shards) - computed[s] for s in STAGES}
-
-        run_key = stable_hash({"finalize": FINALIZE_VERSION, "schema": _schema_version(),
-                               "keys": [s.keys for s in shards], "config": conf.config,
-                               "dataset": [conf.dataset_format, str(data_root)]})
-        attrs = provenance(conf, data_root, shard_size=k, n_shards=len(shards), limit=limit)
-        t_fin = time.perf_counter()
-        counts, written = finalize(shards, cache, out_path, work, attrs, run_key, progress=progress)
-        fin_seconds = time.perf_counter() - t_fin
-    summary = _summary(out_s, conf, counts, seconds, computed, cached_shards, computed_frames, len(shards),
-                       time.perf_counter() - t0, written, fin_seconds)
-    summary.extra["compute_seconds"] = timing.get("compute_seconds", 0.0)  # graph wall time, workers ready
-    return summary
+    return frames
 
 
-def _schema_version() -> str:
-    from ..store import SCHEMA_VERSION
+def _make_shards(conf: PipelineConfig, frames: list[FrameRef], data_root: Path) -> list[Shard]:
+    """Consecutive shards of run.shard_size frames, each with every stage's cache key."""
+    idents = {s: stage_identity(conf, s) for s in STAGES}
+    k = conf.shard_size
+    shards = [Shard(i, frames[j:j + k]) for i, j in enumerate(range(0, len(frames), k))]
+    for s in shards:
+        s.keys = shard_keys(conf, s.frames, data_root, idents)
+    return shards
 
-    return SCHEMA_VERSION
+
+def _run_key(conf: PipelineConfig, data_root: Path, shards: list[Shard]) -> str:
+    """What the store depends on: every cache key, the configuration, the dataset, the store layout."""
+    return stable_hash({"finalize": FINALIZE_VERSION, "schema": SCHEMA_VERSION,
+                        "keys": [s.keys for s in shards], "config": conf.config,
+                        "dataset": [conf.dataset_format, str(data_root)]})
 
 
 def provenance(conf: PipelineConfig, data_root: Path, **run: Any) -> dict[str, Any]:
@@ -235,26 +218,30 @@ def provenance(conf: PipelineConfig, data_root: Path, **run: Any) -> dict[str, A
             "stages": stages, "run": {k: v for k, v in run.items()}}
 
 
-def _summary(out: str, conf: PipelineConfig, counts: FinalizeCounts, seconds, computed, cached, computed_frames,
-             n_shards: int, wall: float, written: bool, fin_seconds: float) -> RunSummary:
-    hist = {int(k): v for k, v in counts.obj_count_hist.items()}
-    n = sum(hist.values())
-    if n:
-        vals = sorted(hist)
-        mean = sum(k * v for k, v in hist.items()) / n
-        cum, median = 0, 0
-        for k in vals:
-            cum += hist[k]
-            if cum * 2 >= n:
-                median = k
-                break
-        opf = {"mean": mean, "median": float(median), "min": float(vals[0]), "max": float(vals[-1])}
-    else:
-        opf = {"mean": 0.0, "median": 0.0, "min": 0.0, "max": 0.0}
+def _summarize(store: str, conf: PipelineConfig, n_shards: int, reports: list[StageReport], counts: FinalizeCounts,
+               written: bool, compute_seconds: float, finalize_seconds: float, wall_seconds: float) -> RunSummary:
+    """The RunSummary of the tasks' reports and finalize's counts."""
+    seconds = {s: 0.0 for s in STAGES}
+    computed = {s: 0 for s in STAGES}
+    computed_frames = {s: 0 for s in STAGES}
+    for r in reports:
+        seconds[r.stage] += r.seconds
+        if r.computed:
+            computed[r.stage] += 1
+            computed_frames[r.stage] += r.frames
     return RunSummary(
-        store=out, pipeline=conf.file, frames_total=counts.frames_total, frames_kept=counts.frames_kept,
-        objects=counts.objects, objects_per_frame=opf, obj_count_hist=counts.obj_count_hist,
-        failures=counts.failures, dropped_by_stage=counts.dropped_by_stage, degraded_by_stage=counts.degraded_by_stage,
-        seconds_by_stage={**seconds, "finalize": fin_seconds}, computed_shards=computed, cached_shards=cached,
-        n_shards=n_shards, wall_seconds=wall, store_written=written,
-        masks_dropped_few_points=counts.masks_dropped_few_points, extra={"computed_frames": computed_frames})
+        store=store, pipeline=conf.file, counts=counts, objects_per_frame=_objects_per_frame(counts.obj_count_hist),
+        seconds_by_stage={**seconds, "finalize": finalize_seconds}, computed_shards=computed,
+        cached_shards={s: n_shards - computed[s] for s in STAGES}, computed_frames=computed_frames,
+        n_shards=n_shards, wall_seconds=wall_seconds, compute_seconds=compute_seconds, store_written=written)
+
+
+def _objects_per_frame(hist: dict[str, int]) -> dict[str, float]:
+    """Mean, median (the lower middle value), min and max objects per frame, from the histogram
+    (objects per frame -> frames)."""
+    if not hist:
+        return {"mean": 0.0, "median": 0.0, "min": 0.0, "max": 0.0}
+    k = np.array(sorted(int(c) for c in hist))
+    n = np.array([hist[str(c)] for c in k])
+    median = k[np.searchsorted(np.cumsum(n) * 2, n.sum())]
+    return {"mean": float((k * n).sum() / n.sum()), "median": float(median), "min": float(k[0]), "max": float(k[-1])}

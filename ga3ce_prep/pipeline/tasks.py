@@ -1,5 +1,5 @@
 """The work of one shard, as dask tasks: each task computes the stage entries of its shard that are
-not in the cache yet, writes them atomically, and returns a small report (never the arrays).
+not in the cache yet, writes them atomically, and returns small `StageReport`s (never the arrays).
 
 Tasks per shard (their dependencies are the stage dependencies):
 
@@ -9,7 +9,7 @@ Tasks per shard (their dependencies are the stage dependencies):
     pose      -> its entry
     view      -> its entry
 
-Entry arrays (n = frames in the shard, ids for a sanity check):
+Entry arrays (n = frames in the shard, ids for a sanity check; `new_entry` builds each layout):
     all:      ids (n,) str, ok (n,) bool, fail_idx (k,) int, fail_error (k,) str, fail_message (k,) str,
               seconds () float
     depth:    valid_frac, filled_frac (n,) float32 [, map_<i> (H, W) float32, valid_<i> (H, W) bool]
@@ -33,8 +33,11 @@ import numpy as np
 from ..errors import Ga3ceError
 from ..frames import FrameRef
 from ..skeleton import N_JOINTS
+from ..stages.base import DepthMap
 from .cache import Cache
 from .config import StageConfig
+
+GEOMETRY: tuple[str, ...] = ("depth", "objects", "head")  # the stages of the geometry task
 
 _backends: dict[tuple, Any] = {}
 
@@ -62,6 +65,17 @@ class TaskEnv:
     cache_depth_maps: bool = False
 
 
+@dataclass
+class StageReport:
+    """What a task did for one stage of one shard: computed it (False: found in the cache) and the
+    seconds spent in the stage's backend."""
+
+    stage: str
+    frames: int
+    computed: bool = False
+    seconds: float = 0.0
+
+
 def _single_threaded() -> None:
     """One thread per task: parallelism comes from dask workers, not from inside a frame."""
     import cv2
@@ -87,35 +101,113 @@ def warm(env: TaskEnv) -> None:
         backend(env, stage).warm()
 
 
-class _Failures:
-    def __init__(self) -> None:
-        self.idx: list[int] = []
-        self.error: list[str] = []
-        self.message: list[str] = []
+class StageEntry:
+    """One stage's cache entry for one shard, filled frame by frame.
 
-    def add(self, i: int, e: BaseException) -> None:
+    columns: name -> (n, ...) array, row i set when frame i succeeds (the initial 0 or NaN stays
+    where it did not); ragged: name -> empty (0, ...) array, each frame adds its (m_i, ...) rows,
+    concatenated at save; arrays: whole arrays stored as they are (the cached depth maps).
+    values: the backend's result for a frame -> its column values.
+    """
+
+    def __init__(self, stage: str, shard: Shard, values: Callable[[Any], dict[str, Any]] = lambda _: {},
+                 ragged: dict[str, np.ndarray] | None = None, **columns: np.ndarray):
+        self.stage, self.shard, self.values = stage, shard, values
+        self.mask = np.zeros(len(shard.frames), bool)
+        self.fail_idx: list[int] = []
+        self.fail_error: list[str] = []
+        self.fail_message: list[str] = []
+        self.columns = columns
+        self.empty = ragged or {}
+        self.parts: dict[str, list[np.ndarray]] = {k: [] for k in self.empty}
+        self.arrays: dict[str, np.ndarray] = {}
+        self.seconds = 0.0
+
+    def ok(self, i: int, **values: Any) -> None:
+        """Frame i succeeded with these column values."""
+        for k, v in values.items():
+            if k in self.parts:
+                self.parts[k].append(v)
+            else:
+                self.columns[k][i] = v
+        self.mask[i] = True
+
+    def fail(self, i: int, e: BaseException) -> None:
+        """Frame i failed with `e`: one failure record (error class, message; for an unexpected error
+        also where it happened). GA3CE_DEBUG=1 raises it instead."""
         if os.environ.get("GA3CE_DEBUG"):
             raise e
-        self.idx.append(i)
-        self.error.append(type(e).__name__)
         msg = str(e) or type(e).__name__
         if not isinstance(e, Ga3ceError):  # an unexpected error: keep where it happened
             tb = traceback.extract_tb(e.__traceback__)
             if tb:
                 msg += f" (at {Path(tb[-1].filename).name}:{tb[-1].lineno}; rerun with GA3CE_DEBUG=1 for the traceback)"
-        self.message.append(msg)
+        self.fail_idx.append(i)
+        self.fail_error.append(type(e).__name__)
+        self.fail_message.append(msg)
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {"fail_idx": np.array(self.idx, np.int64), "fail_error": np.array(self.error, dtype=str),
-                "fail_message": np.array(self.message, dtype=str)}
+    def attempt(self, i: int, fn: Callable[..., Any], *args: Any) -> Any:
+        """fn(*args) for frame i, timed: its result (frame i ok with its values), or None after a
+        failure record."""
+        t = time.perf_counter()
+        try:
+            out = fn(*args)
+            self.ok(i, **self.values(out))
+            return out
+        except Exception as e:  # noqa: BLE001 - every per-frame problem becomes a record
+            self.fail(i, e)
+            return None
+        finally:
+            self.seconds += time.perf_counter() - t
+
+    def report(self, computed: bool) -> StageReport:
+        return StageReport(self.stage, len(self.shard.frames), computed, self.seconds)
+
+    def save(self, cache: Cache) -> StageReport:
+        """Write the entry under the shard's key for this stage."""
+        ragged = {k: np.concatenate(p).astype(self.empty[k].dtype) if p else self.empty[k]
+                  for k, p in self.parts.items()}
+        cache.save(self.stage, self.shard.keys[self.stage], {
+            "ids": self.shard.ids, "ok": self.mask, "seconds": np.float64(self.seconds),
+            "fail_idx": np.array(self.fail_idx, np.int64), "fail_error": np.array(self.fail_error, dtype=str),
+            "fail_message": np.array(self.fail_message, dtype=str), **self.columns, **ragged, **self.arrays})
+        return self.report(True)
 
 
-def _entry(shard: Shard, ok: np.ndarray, fails: _Failures, seconds: float, **arrays) -> dict[str, np.ndarray]:
-    return {"ids": shard.ids, "ok": ok, "seconds": np.float64(seconds), **fails.arrays(), **arrays}
+def _shaped(v: Any, shape: tuple[int, ...], stage: str) -> np.ndarray:
+    v = np.asarray(v, np.float32)
+    if v.shape != shape:
+        raise ValueError(f"{stage} backend returned shape {v.shape}, expected {shape}")
+    return v
 
 
-def _report(stage: str, shard: Shard, computed: bool, seconds: float = 0.0) -> dict[str, Any]:
-    return {stage: {"computed": computed, "seconds": seconds, "frames": len(shard.frames)}}
+def new_entry(stage: str, shard: Shard) -> StageEntry:
+    """An empty entry of `stage` for `shard`, with its columns (module docstring)."""
+    n = len(shard.frames)
+    if stage == "depth":  # DepthMap
+        return StageEntry(stage, shard,
+                          lambda dm: {"valid_frac": dm.valid.mean(), "filled_frac": (dm.depth > 0).mean()},
+                          valid_frac=np.zeros(n, np.float32), filled_frac=np.zeros(n, np.float32))
+    if stage == "objects":  # FrameObjects
+        return StageEntry(stage, shard, lambda fo: {"count": len(fo.xyz), "n_dropped": fo.n_dropped, "xyz": fo.xyz,
+                                                    "area": fo.area, "score": fo.score},
+                          ragged={"xyz": np.zeros((0, 3), np.float32), "area": np.zeros(0, np.int32),
+                                  "score": np.zeros(0, np.float32)},
+                          count=np.zeros(n, np.int32), n_dropped=np.zeros(n, np.int32))
+    if stage == "head":  # (3,) t_object
+        return StageEntry(stage, shard, lambda hp: {"head_pos": hp}, head_pos=np.full((n, 3), np.nan, np.float32))
+    if stage in ("pose", "view"):  # (N_JOINTS, 3) or (3,)
+        shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
+        return StageEntry(stage, shard, lambda v: {stage: _shaped(v, shape, stage)},
+                          **{stage: np.full((n, *shape), np.nan, np.float32)})
+    return StageEntry(stage, shard)  # input: ok flags and failures only
+
+
+def run_frames(shard: Shard, fn: Callable[[FrameRef], Any], entry: StageEntry, only: np.ndarray | None = None) -> None:
+    """entry.attempt(i, fn, frame) for every frame i of the shard (where `only` (n,) bool is True)."""
+    for i, f in enumerate(shard.frames):
+        if only is None or only[i]:
+            entry.attempt(i, fn, f)
 
 
 def _load_ok(cache: Cache, stage: str, shard: Shard) -> np.ndarray:
@@ -126,140 +218,71 @@ def _load_ok(cache: Cache, stage: str, shard: Shard) -> np.ndarray:
     return e["ok"]
 
 
-def input_task(env: TaskEnv, shard: Shard) -> dict[str, Any]:
+def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:
     """Check each frame (stages/input.py) and write the input entry."""
     cache = Cache(env.cache_root)
     if cache.has("input", shard.keys["input"]):
-        return _report("input", shard, False)
+        return [StageReport("input", len(shard.frames))]
     _single_threaded()
-    t0 = time.perf_counter()
-    b = backend(env, "input")
-    ok = np.zeros(len(shard.frames), bool)
-    fails = _Failures()
-    for i, f in enumerate(shard.frames):
-        try:
-            b.check_frame(f)
-            ok[i] = True
-        except Exception as e:  # noqa: BLE001 - every per-frame problem becomes a record
-            fails.add(i, e)
-    dt = time.perf_counter() - t0
-    cache.save("input", shard.keys["input"], _entry(shard, ok, fails, dt))
-    return _report("input", shard, True, dt)
+    entry = new_entry("input", shard)
+    run_frames(shard, backend(env, "input").check_frame, entry)
+    return [entry.save(cache)]
 
 
-def geometry_task(env: TaskEnv, shard: Shard, _upstream: Any = None) -> dict[str, Any]:
-    """Depth, then objects and head from it, for the frames that passed the input checks."""
-    cache = Cache(env.cache_root)
-    need = {s: not cache.has(s, shard.keys[s]) for s in ("depth", "objects", "head")}
-    if not any(need.values()):
-        return {s: _report(s, shard, False)[s] for s in ("depth", "objects", "head")}
-    _single_threaded()
-    n = len(shard.frames)
-    ok_in = _load_ok(cache, "input", shard)
-    cached_depth = None if need["depth"] else cache.load("depth", shard.keys["depth"])
-    if cached_depth is None:
-        need["depth"] = True
-    use_maps = cached_depth is not None and env.cache_depth_maps and (
-        all(f"map_{i}" in cached_depth for i in np.flatnonzero(cached_depth["ok"])))
-    if env.cache_depth_maps and cached_depth is not None and not use_maps:
-        need["depth"] = True  # entry without maps: recompute so the maps get cached
-    b_depth = backend(env, "depth")
-    b_obj = backend(env, "objects") if need["objects"] else None
-    b_head = backend(env, "head") if need["head"] else None
-    secs = {"depth": 0.0, "objects": 0.0, "head": 0.0}
-    fails = {s: _Failures() for s in secs}
-    ok = {s: np.zeros(n, bool) for s in secs}
-    valid_frac = np.zeros(n, np.float32)
-    filled_frac = np.zeros(n, np.float32)
-    maps: dict[str, np.ndarray] = {}
-    count = np.zeros(n, np.int32)
-    n_dropped = np.zeros(n, np.int32)
-    xyz, area, score = [], [], []
-    head_pos = np.full((n, 3), np.nan, np.float32)
-    depth_ok = ok_in if cached_depth is None else (ok_in & cached_depth["ok"])
-
-    def timed(stage: str, fn: Callable[[], Any], i: int) -> Any:
-        t = time.perf_counter()
-        try:
-            out = fn()
-            ok[stage][i] = True
-            return out
-        except Exception as e:  # noqa: BLE001
-            fails[stage].add(i, e)
-            return None
-        finally:
-            secs[stage] += time.perf_counter() - t
-
-    for i, f in enumerate(shard.frames):
-        if not depth_ok[i]:
-            continue
-        if use_maps:
-            from ..stages.base import DepthMap
-
-            dm = DepthMap(cached_depth[f"map_{i}"], cached_depth[f"valid_{i}"])
-            ok["depth"][i] = True
-        else:
-            dm = timed("depth", lambda: b_depth.depth(f), i)
-        if dm is None:
-            continue
-        valid_frac[i] = dm.valid.mean()
-        filled_frac[i] = (dm.depth > 0).mean()
-        if env.cache_depth_maps and need["depth"]:
-            maps[f"map_{i}"], maps[f"valid_{i}"] = dm.depth, dm.valid
-        if b_obj is not None:
-            fo = timed("objects", lambda: b_obj.objects(f, dm), i)
-            if fo is not None:
-                count[i], n_dropped[i] = len(fo.xyz), fo.n_dropped
-                xyz.append(fo.xyz)
-                area.append(fo.area)
-                score.append(fo.score)
-        if b_head is not None:
-            hp = timed("head", lambda: b_head.head(f, dm), i)
-            if hp is not None:
-                head_pos[i] = hp
-    reports: dict[str, Any] = {}
-    if need["depth"]:
-        cache.save("depth", shard.keys["depth"], _entry(shard, ok["depth"], fails["depth"], secs["depth"],
-                                                        valid_frac=valid_frac, filled_frac=filled_frac, **maps))
-    reports.update(_report("depth", shard, need["depth"], secs["depth"]))
-    if need["objects"]:
-        cat = (lambda parts, shape, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt))
-        cache.save("objects", shard.keys["objects"], _entry(
-            shard, ok["objects"], fails["objects"], secs["objects"], count=count, n_dropped=n_dropped,
-            xyz=cat(xyz, (0, 3), np.float32), area=cat(area, (0,), np.int32), score=cat(score, (0,), np.float32)))
-    reports.update(_report("objects", shard, need["objects"], secs["objects"]))
-    if need["head"]:
-        cache.save("head", shard.keys["head"], _entry(shard, ok["head"], fails["head"], secs["head"], head_pos=head_pos))
-    reports.update(_report("head", shard, need["head"], secs["head"]))
-    return reports
-
-
-def stage_task(env: TaskEnv, stage: str, shard: Shard, _upstream: Any = None) -> dict[str, Any]:
+def stage_task(env: TaskEnv, stage: str, shard: Shard, _upstream: Any = None) -> list[StageReport]:
     """A per-frame stage without depth: pose (N_JOINTS, 3) or view (3,)."""
     cache = Cache(env.cache_root)
     if cache.has(stage, shard.keys[stage]):
-        return _report(stage, shard, False)
+        return [StageReport(stage, len(shard.frames))]
     _single_threaded()
-    t0 = time.perf_counter()
-    ok_in = _load_ok(cache, "input", shard)
-    b = backend(env, stage)
-    fn = getattr(b, stage)  # PoseBackend.pose or ViewBackend.view
-    shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
-    n = len(shard.frames)
-    out = np.full((n, *shape), np.nan, np.float32)
-    ok = np.zeros(n, bool)
-    fails = _Failures()
-    for i, f in enumerate(shard.frames):
-        if not ok_in[i]:
+    entry = new_entry(stage, shard)
+    run_frames(shard, getattr(backend(env, stage), stage), entry, only=_load_ok(cache, "input", shard))
+    return [entry.save(cache)]
+
+
+def _reusable_depth(cache: Cache, shard: Shard, cache_maps: bool) -> dict[str, np.ndarray] | None:
+    """The shard's cached depth entry, or None when it must be computed and written again: it is
+    unreadable, or run.cache_depth_maps is on and it lacks the maps of its ok frames."""
+    e = cache.load("depth", shard.keys["depth"])
+    if e is None or (cache_maps and not all(f"map_{i}" in e for i in np.flatnonzero(e["ok"]))):
+        return None
+    return e
+
+
+def _depth_for(i: int, frame: FrameRef, depth: StageEntry, compute: Callable[[FrameRef], DepthMap],
+               cached: dict[str, np.ndarray] | None, cache_maps: bool) -> DepthMap | None:
+    """Frame i's depth map, None if it failed. With run.cache_depth_maps: the cached entry's map, or
+    one computed and recorded with its map in `depth`; without: computed (recorded in `depth`, which
+    is written only when no entry was cached)."""
+    if cache_maps and cached is not None:
+        return DepthMap(cached[f"map_{i}"], cached[f"valid_{i}"])
+    dm = depth.attempt(i, compute, frame)
+    if dm is not None and cache_maps:
+        depth.arrays[f"map_{i}"], depth.arrays[f"valid_{i}"] = dm.depth, dm.valid
+    return dm
+
+
+def geometry_task(env: TaskEnv, shard: Shard, _upstream: Any = None) -> list[StageReport]:
+    """Depth, then objects and head from it, for the frames that passed the input checks."""
+    cache = Cache(env.cache_root)
+    todo = {s for s in GEOMETRY if not cache.has(s, shard.keys[s])}
+    if not todo:
+        return [StageReport(s, len(shard.frames)) for s in GEOMETRY]
+    _single_threaded()
+    cached = None if "depth" in todo else _reusable_depth(cache, shard, env.cache_depth_maps)
+    if cached is None:
+        todo.add("depth")
+    entries = {s: new_entry(s, shard) for s in GEOMETRY}
+    compute = {s: getattr(backend(env, s), s) for s in GEOMETRY if s == "depth" or s in todo}
+    ok = _load_ok(cache, "input", shard)
+    if cached is not None:
+        ok = ok & cached["ok"]  # a frame whose depth failed has no objects or head either
+    for i in np.flatnonzero(ok):
+        f = shard.frames[i]
+        dm = _depth_for(i, f, entries["depth"], compute["depth"], cached, env.cache_depth_maps)
+        if dm is None:
             continue
-        try:
-            v = np.asarray(fn(f), np.float32)
-            if v.shape != shape:
-                raise ValueError(f"{stage} backend returned shape {v.shape}, expected {shape}")
-            out[i] = v
-            ok[i] = True
-        except Exception as e:  # noqa: BLE001
-            fails.add(i, e)
-    dt = time.perf_counter() - t0
-    cache.save(stage, shard.keys[stage], _entry(shard, ok, fails, dt, **{stage: out}))
-    return _report(stage, shard, True, dt)
+        for s in ("objects", "head"):
+            if s in todo:
+                entries[s].attempt(i, compute[s], f, dm)
+    return [entries[s].save(cache) if s in todo else entries[s].report(False) for s in GEOMETRY]

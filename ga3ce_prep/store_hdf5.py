@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..store import open_store
+from .store import open_store
 
 
 def export_hdf5(store: str | Path, out: str | Path) -> Path:

@@ -1,12 +1,16 @@
-"""`ga3ce-prep info`: what a store holds, as text (splits, scenes, frames, object-count histogram,
-ground truth present, provenance, failures)."""
+"""The store commands `info`, `show`, `export` (registered in ga3ce_prep/cli.py), and `info`'s text:
+what a store holds (splits, scenes, frames, object-count histogram, ground truth present,
+provenance, failures)."""
 from __future__ import annotations
 
+import json
+import os
 from collections import Counter
 
+import click
 import numpy as np
 
-from ..store import ContextStore
+from .store import ContextStore, open_store
 
 HIST_EDGES = (0, 1, 5, 10, 20, 40, 80, 160)
 
@@ -16,6 +20,7 @@ def _bar(n: int, peak: int, width: int = 30) -> str:
 
 
 def describe_store(s: ContextStore, max_failures: int = 8) -> str:
+    """`ga3ce-prep info`'s text for an opened store."""
     fr, a = s.frames, s.attrs
     n = len(s)
     lines = [f"store        {s.path}",
@@ -25,8 +30,8 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
     lines.append(f"dataset      {ds.get('name')} at {ds.get('root')}")
     lines.append(f"pipeline     {pl.get('name', '')} ({pl.get('file')}, sha256 {str(pl.get('sha256', ''))[:12]})")
     summ = a.get("summary", {})
-    lines.append(f"frames       {n} (of {summ.get('frames_in_dataset', n)} in the dataset; "
-                 f"{summ.get('frames_dropped', 0)} dropped)")
+    total = summ.get("frames_total", n)
+    lines.append(f"frames       {n} (of {total} in the dataset; {total - n} dropped)")
     split_counts = Counter(fr["split"].tolist())
     lines.append("splits       " + ", ".join(f"{name} {split_counts.get(k, 0)}" for k, name in enumerate(s.split_names)))
     scene_counts = Counter(fr["scene"].tolist())
@@ -65,3 +70,43 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
         if nf > max_failures:
             lines.append(f"  ... {nf - max_failures} more (read them with open_store(path).failures)")
     return "\n".join(lines)
+
+
+@click.command("info")
+@click.argument("store", type=click.Path())
+@click.option("--failures", "max_failures", type=int, default=8, show_default=True,
+              help="How many failure messages to list.")
+@click.option("--json", "as_json", is_flag=True, help="Print the root attributes (provenance, summary) as JSON instead.")
+def info(store, max_failures, as_json):
+    """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures."""
+    s = open_store(store)
+    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures))
+
+
+@click.command("show")
+@click.argument("store", type=click.Path())
+@click.argument("frame_id")
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False),
+              help="F.png: the image with head box, projected objects, t_object, v and ground-truth gaze "
+                   "arrows; F.ply: the 3D context as a point set (Open3D).")
+@click.option("--data", type=click.Path(file_okay=False), default=None,
+              help="Dataset root, if it moved since the store was made (for the image and depth).")
+def show(store, frame_id, out, data):
+    """Draw one frame's 3D context as a PNG, or write it as a PLY point set."""
+    from .viz import show as show_frame
+
+    path = show_frame(open_store(store), frame_id, out, data)
+    click.echo(f"wrote {path}")
+
+
+@click.command("export")
+@click.argument("store", type=click.Path())
+@click.argument("out", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["hdf5"]), default="hdf5", show_default=True,
+              help="Output format (HDF5: the store's groups and arrays, names unchanged).")
+def export(store, out, fmt):
+    """Export a store's arrays to HDF5 for other trainers (same names, shapes and dtypes)."""
+    from .store_hdf5 import export_hdf5
+
+    path = export_hdf5(store, out)
+    click.echo(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB)")
