@@ -33,7 +33,7 @@ from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
 
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"  # 1.1: attrs["summary"] holds FinalizeCounts under its own field names
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.

@@ -30,7 +30,7 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
     lines.append(f"dataset      {ds.get('name')} at {ds.get('root')}")
     lines.append(f"pipeline     {pl.get('name', '')} ({pl.get('file')}, sha256 {str(pl.get('sha256', ''))[:12]})")
     summ = a.get("summary", {})
-    total = summ.get("frames_total", n)
+    total = summ.get("frames_total", summ.get("frames_in_dataset", n))  # 1.0 stores: the old name
     lines.append(f"frames       {n} (of {total} in the dataset; {total - n} dropped)")
     split_counts = Counter(fr["split"].tolist())
     lines.append("splits       " + ", ".join(f"{name} {split_counts.get(k, 0)}" for k, name in enumerate(s.split_names)))

@@ -1,4 +1,4 @@
-"""CAD-120 gaze evaluation set (nkuhzx/GFIE's CAD-120 release): research/gfie.md §1.2.
+"""CAD-120 gaze evaluation set (nkuhzx/GFIE's CAD-120 release: `README.md`, `config/cad120evaluation.yaml`).
 
 An evaluation set: every frame is in the "test" split (GA3CE trains on GFIE and tests here).
 Boxes and the 2D gaze point are stored normalised to [0, 1]; the adapter converts them to pixels

@@ -1,4 +1,5 @@
-"""GAFA raw data (kyotovision-public/dynamic-3d-gaze-from-afar): research/gafa.md §1-§2.
+"""GAFA raw data (kyotovision-public/dynamic-3d-gaze-from-afar: `README.md`,
+`data/preprocessed/preprocess.py`, `dataloader/gafa.py`).
 
 The split is by session and fixed (eval.py / train.py). GAFA's own validation set is the shuffled
 tail of train (unseeded); ours is deterministic: the two sessions in VAL_SESSIONS. GAFA has no

@@ -1,4 +1,4 @@
-"""GFIE (nkuhzx/GFIE): layout and annotation columns in research/gfie.md §1.1.
+"""GFIE (nkuhzx/GFIE): layout and annotation columns as its `README.md` and `dataset/gfie.py` read them.
 
 The 3D annotations (eye_X.., gaze_X..) share the depth maps' units. The repository never states
 them (probably metres); `units="auto"` checks the first depth map and the annotations and converts
