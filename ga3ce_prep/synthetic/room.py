@@ -182,14 +182,20 @@ class _Builder:
                 return (x0, x1, y0, y1), yaw
         return None
 
+    def _claim_rect(self, w: float, d: float, sx: float, sy: float, against_wall: bool):
+        """`_place_rect`, and the footprint found is claimed (later furniture keeps clear of it)."""
+        got = self._place_rect(w, d, sx, sy, against_wall)
+        if got is not None:
+            self.footprints.append(got[0])
+        return got
+
     def table(self, sx, sy) -> None:
         rng = self.rng
         w, d, h = rng.uniform(0.8, 1.8), rng.uniform(0.6, 0.95), rng.uniform(0.70, 0.78)
-        got = self._place_rect(w, d, sx, sy, against_wall=rng.random() < 0.3)
+        got = self._claim_rect(w, d, sx, sy, against_wall=rng.random() < 0.3)
         if got is None:
             return
         (x0, x1, y0, y1), _ = got
-        self.footprints.append((x0, x1, y0, y1))
         t = 0.04
         parts = [meshes.box((x0, y0, h - t), (x1, y1, h))]
         for lx, ly in ((x0 + 0.03, y0 + 0.03), (x1 - 0.08, y0 + 0.03), (x0 + 0.03, y1 - 0.08), (x1 - 0.08, y1 - 0.08)):
@@ -201,11 +207,10 @@ class _Builder:
     def shelf(self, sx, sy) -> None:
         rng = self.rng
         w, d, h = rng.uniform(0.8, 1.6), rng.uniform(0.3, 0.42), rng.uniform(1.3, 2.0)
-        got = self._place_rect(w, d, sx, sy, against_wall=True)
+        got = self._claim_rect(w, d, sx, sy, against_wall=True)
         if got is None:
             return
         (x0, x1, y0, y1), yaw = got
-        self.footprints.append((x0, x1, y0, y1))
         n_boards = int(rng.integers(3, 6))
         t = 0.025
         zs = np.linspace(0.05, h - t, n_boards)
@@ -228,11 +233,10 @@ class _Builder:
     def cabinet(self, sx, sy) -> None:
         rng = self.rng
         w, d, h = rng.uniform(0.6, 1.2), rng.uniform(0.4, 0.6), rng.uniform(0.75, 1.05)
-        got = self._place_rect(w, d, sx, sy, against_wall=True)
+        got = self._claim_rect(w, d, sx, sy, against_wall=True)
         if got is None:
             return
         (x0, x1, y0, y1), _ = got
-        self.footprints.append((x0, x1, y0, y1))
         col = _colour(rng, (0.0, 0.4), (0.15, 0.9))
         self.add("furniture", "cabinet", meshes.box((x0, y0, 0), (x1, y1, h)), col, max(w, h))
         self.surfaces.append(Surface(x0 + 0.03, x1 - 0.03, y0 + 0.03, y1 - 0.03, h, 1.0))
