@@ -53,6 +53,7 @@ BACKENDS: dict[str, str | Planned] = {
     "pose/onnx": Planned("a smpl+head_30 crop pose model through ONNX Runtime"),
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
+    "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
     "view/onnx": Planned("a head-crop (GFIE) or 7-frame head-body (GAFA) view network through ONNX Runtime"),
 }
 
