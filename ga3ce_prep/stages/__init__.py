@@ -43,6 +43,7 @@ BACKENDS: dict[str, str | Planned] = {
     "input/check": "ga3ce_prep.stages.input:CheckInput",
     "depth/sensor": "ga3ce_prep.stages.depth:SensorDepth",
     "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
+    "depth/fastdepth": "ga3ce_prep.stages.depth:FastDepth",
     "depth/zoedepth": Planned("monocular metric depth through ONNX Runtime (ZoeDepth)"),
     "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
     "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
