@@ -77,6 +77,14 @@ def load_rgb(path: str | Path) -> np.ndarray:
         raise FrameError(f"cannot decode image {path}: {e}; re-extract or replace the file") from e
 
 
+def check_rgb(rgb: np.ndarray) -> np.ndarray:
+    """The array itself if it is an (H, W, 3) uint8 RGB image (what `load_rgb` returns);
+    FrameError saying what it is otherwise."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise FrameError(f"expected an (H, W, 3) uint8 RGB image, got {rgb.shape} {rgb.dtype}")
+    return rgb
+
+
 def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
     """Read a depth map as (H, W) float32 metres, 0 = unknown.
 

@@ -61,6 +61,23 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K2
 
 
+def look_at_rotation(ray: np.ndarray) -> np.ndarray:
+    """The (3, 3) rotation taking the optical axis (0, 0, 1) to the unit direction of `ray` (3,)
+    by the shortest arc (about the axis z x ray, no roll). It turns a direction measured relative
+    to the viewing ray (as a crop seen frontally would give it) into the camera frame. The ray must
+    point into the half-space z > -1 (any ray through a pixel does)."""
+    r = normalize(np.asarray(ray, np.float64))
+    k = np.array([-r[1], r[0], 0.0])  # (0, 0, 1) x r: sin(angle) times the unit axis
+    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + Kx + Kx @ Kx / (1.0 + r[2])  # Rodrigues with cos(angle) = r_z
+
+
+def pixel_ray(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The unit camera-frame direction (..., 3) of the ray through pixel(s) uv (..., 2)."""
+    uv = np.asarray(uv, np.float64)
+    return normalize(back_project(uv[..., 0], uv[..., 1], np.ones(uv.shape[:-1]), np.asarray(K, np.float64)))
+
+
 @dataclass
 class ObjectPositions:
     """Per-mask median 3D points, GA3CE's P_object.

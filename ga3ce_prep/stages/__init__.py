@@ -43,6 +43,7 @@ BACKENDS: dict[str, str | Planned] = {
     "input/check": "ga3ce_prep.stages.input:CheckInput",
     "depth/sensor": "ga3ce_prep.stages.depth:SensorDepth",
     "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
+    "depth/fastdepth": "ga3ce_prep.stages.depth:FastDepth",
     "depth/zoedepth": Planned("monocular metric depth through ONNX Runtime (ZoeDepth)"),
     "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
     "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
@@ -53,6 +54,7 @@ BACKENDS: dict[str, str | Planned] = {
     "pose/onnx": Planned("a smpl+head_30 crop pose model through ONNX Runtime"),
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
+    "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
     "view/onnx": Planned("a head-crop (GFIE) or 7-frame head-body (GAFA) view network through ONNX Runtime"),
 }
 

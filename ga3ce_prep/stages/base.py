@@ -91,6 +91,29 @@ class Backend:
         before the graph runs). Default: nothing."""
 
 
+class ProcessEstimator:
+    """Mixin for a backend whose model runs in a native session (ONNX Runtime, LiteRT): one
+    estimator per process, built by `build_estimator()` on first use or by `warm()`, and never
+    pickled (dask workers rebuild theirs)."""
+
+    def build_estimator(self) -> Any:
+        raise NotImplementedError
+
+    def estimator(self) -> Any:
+        """The process's estimator (built once, on first use)."""
+        if getattr(self, "_estimator", None) is None:
+            self._estimator = self.build_estimator()
+        return self._estimator
+
+    def warm(self) -> None:
+        self.estimator()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_estimator", None)
+        return state
+
+
 class CheckInputBackend(Backend):
     stage = "input"
 

@@ -1,17 +1,22 @@
 """The depth stage: sensor depth with classical hole completion
-(`estimators/depth_completion.py`, IP-Basic family), or the synthetic world's exact depth.
+(`estimators/depth_completion.py`, IP-Basic family), the synthetic world's exact depth, or
+FastDepth's coarse monocular depth (`estimators/fastdepth.py`, a registry model).
 
 The raw validity mask (measured depth within [min_depth, max_depth]) is kept beside the completed
-map: object medians and the head position use measured pixels only.
+map: object medians and the head position use measured pixels only. For monocular depth "valid"
+means "predicted" (nothing is measured): the pixels the network covered.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import FrameError
 from ..estimators.depth_completion import CompletionParams, complete_depth
-from ..frames import FrameRef, load_depth
-from .base import DepthBackend, DepthMap
+from ..estimators.onnx_runtime import RuntimeParams
+from ..frames import FrameRef, load_depth, load_rgb
+from .base import DepthBackend, DepthMap, ProcessEstimator
 from .truth import TruthParams, check_truth_file, truth_frame
 
 
@@ -57,3 +62,38 @@ class OracleDepth(DepthBackend):
         check_resolution(frame, d.shape, "truth depth")
         valid = np.isfinite(d) & (d > 0)
         return DepthMap(np.where(valid, d, 0).astype(np.float32), valid)
+
+
+class FastDepth(ProcessEstimator, DepthBackend):
+    """FastDepth (NYU-Depth-v2) on the registry's ONNX file: metric depth of the largest centred 4:3
+    crop, rescaled for the frame's focal length; 0 outside the crop.
+
+    `valid` marks the predicted pixels (the crop), not measured ones: the object medians and the
+    head position use them as they would sensor depth. The depth is coarse (blurry edges, close-ups
+    collapse to about 1-1.5 m): docs/models.md."""
+
+    name = "fastdepth"
+    MODEL = "fastdepth"  # registry_models key
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(RuntimeParams):
+        """RuntimeParams: ONNX Runtime providers and threads."""
+
+    def check(self) -> None:
+        from .. import registry_models
+        from ..estimators.onnx_runtime import resolve_providers
+
+        registry_models.require(self.MODEL, f"stages.depth.backend {self.name}")
+        resolve_providers(self.p.providers)
+
+    def build_estimator(self):
+        from ..estimators.fastdepth import FastDepthEstimator
+        from ..registry_models import model_path
+
+        return FastDepthEstimator(model_path(self.MODEL), self.p)
+
+    def depth(self, frame: FrameRef) -> DepthMap:
+        rgb = load_rgb(frame.image_path)
+        dm = self.estimator().predict(rgb, frame.K).as_depth_map()
+        check_resolution(frame, dm.depth.shape, f"FastDepth of {frame.image_path}")
+        return dm

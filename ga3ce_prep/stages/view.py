@@ -1,9 +1,11 @@
 """The view stage: the view prior v, a unit camera-frame vector (an appearance network's gaze
 estimate). A failure drops the frame: GA3CE has nothing to refine without v.
 
-Backends: `precomputed` (stages/precomputed.py layout) and `oracle` (the synthetic truth gaze,
+Backends: `precomputed` (stages/precomputed.py layout), `oracle` (the synthetic truth gaze,
 optionally pulled toward the head direction, plus noise calibrated to a mean angular error:
-stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees).
+stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees),
+and `facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
+estimators/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate).
 """
 from __future__ import annotations
 
@@ -13,10 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FrameError
-from ..frames import FrameRef
+from ..estimators.facemesh import FaceMeshOptions
+from ..frames import FrameRef, load_rgb
 from ..geometry import normalize
 from ..params import param
-from .base import ViewBackend
+from .base import ProcessEstimator, ViewBackend
 from .oracle_noise import frame_rng, noisy_view
 from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
@@ -69,3 +72,36 @@ class OracleView(ViewBackend):
         head = getattr(rec, "head_dir", None)
         return noisy_view(normalize(gaze), None if head is None else np.asarray(head, np.float64),
                           frame_rng(p.seed, "view/oracle", frame.id), p.mean_error_deg, p.head_weight)
+
+
+class FaceMeshView(ProcessEstimator, ViewBackend):
+    """v = the head direction of the face in the head box: BlazeFace, the face mesh, then the
+    facing direction of its landmarks, perspective-corrected with K (estimators/facemesh.py).
+    The models come from the registry cache (`ga3ce-prep models fetch`), SHA-256 checked.
+
+    A frame where no face is visible (the subject faces away, an occluded or tiny face) fails with
+    FrameError. The fallback from the pose stage's keypoints (`train/baselines.py`
+    `head_direction_from_pose`) is not wired into the view stage yet."""
+
+    name = "facemesh"
+    MODELS = ("face_detection", "face_landmark")  # registry_models keys: BlazeFace short-range, face mesh
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(FaceMeshOptions):
+        """FaceMeshOptions: LiteRT threads, the detector crop, thresholds and the mesh crop."""
+
+    def check(self) -> None:
+        from .. import registry_models
+
+        for key in self.MODELS:
+            registry_models.require(key, f"stages.view.backend {self.name}")
+
+    def build_estimator(self):
+        from ..estimators.facemesh import FaceMeshEstimator
+        from ..registry_models import model_path
+
+        return FaceMeshEstimator(*(model_path(k) for k in self.MODELS), self.p)
+
+    def view(self, frame: FrameRef) -> np.ndarray:
+        res = self.estimator().estimate(load_rgb(frame.image_path), frame.head_box, frame.K)
+        return res.direction.astype(np.float32)

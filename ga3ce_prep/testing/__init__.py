@@ -5,6 +5,7 @@ product path.
   that fit them.
 - `toy_store`: a toy 3D-context world written straight into the store format, for the trainer.
 - `scripted`: tiny ONNX models with MobileSAM's official interfaces whose outputs are known.
+- `photos`: scikit-image's photos as frames (RGB, an assumed K) for the real-model tests.
 - `amg_reference`: the automatic mask generator in the official order of operations (slow on
   purpose), what the fast generator is checked and timed against.
 """
