@@ -37,7 +37,7 @@ prep: setup
 
 ## make schema: regenerate schemas/pipeline.schema.json from the backends' Params dataclasses.
 schema: setup
-	$(PY) -m ga3ce_prep.pipeline.schema --write
+	$(PY) -c 'from ga3ce_prep.pipeline.schema import main; main(["--write"])'
 
 bench-synth: setup
 	$(PY) benchmarks/bench_synth.py

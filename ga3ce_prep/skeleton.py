@@ -6,6 +6,10 @@ models order the face joints differently.
 """
 from __future__ import annotations
 
+import numpy as np
+
+from .geometry import normalize
+
 JOINT_NAMES: tuple[str, ...] = (
     "pelv_smpl", "lhip_smpl", "rhip_smpl", "bell_smpl", "lkne_smpl", "rkne_smpl", "spin_smpl",
     "lank_smpl", "rank_smpl", "thor_smpl", "ltoe_smpl", "rtoe_smpl", "neck_smpl", "lcla_smpl",
@@ -41,3 +45,15 @@ BODY25_FROM_SMPL30: tuple[int, ...] = (
     10, 10, 7, 11, 11, 8,
 )
 BODY25_HEAD: tuple[int, ...] = (0, 1, 15, 16, 17, 18)  # GAFA's head joints (nose, neck, eyes, ears)
+
+
+def head_direction_from_pose(pose: np.ndarray, fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """normalise(nose - (left ear + right ear) / 2) from smpl+head_30 poses (n, 30, 3).
+
+    Frames missing the nose or an ear take `fallback` (n, 3) (pass v). Returns (directions (n, 3),
+    ok (n,) bool: the pose gave the direction)."""
+    nose, lear, rear = pose[:, J["nose"]], pose[:, J["lear"]], pose[:, J["rear"]]
+    d = nose - 0.5 * (lear + rear)
+    ok = np.isfinite(d).all(1) & (np.linalg.norm(np.nan_to_num(d), axis=1) > 1e-6)
+    out = np.where(ok[:, None], normalize(np.nan_to_num(d)), fallback)
+    return out, ok

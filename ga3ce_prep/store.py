@@ -33,7 +33,8 @@ from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
 
-SCHEMA_VERSION = "1.1"  # 1.1: attrs["summary"] holds FinalizeCounts under its own field names
+# 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source
+SCHEMA_VERSION = "1.2"
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
@@ -48,6 +49,7 @@ FRAME_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "head_pos": (np.float32, (3,)),
     "pose": (np.float32, (N_JOINTS, 3)),
     "view": (np.float32, (3,)),
+    "view_source": (np.int8, ()),  # which way v came about; names in the array's attrs["names"]
     "gaze": (np.float32, (3,)),
     "eye": (np.float32, (3,)),
     "gaze_target": (np.float32, (3,)),
@@ -155,11 +157,13 @@ class StoreWriter:
         for name in FAILURE_ARRAYS:
             self._push(f"failures/{name}", self._coerce(FAILURE_ARRAYS, f"failures/{name}", name, failures[name], n))
 
-    def close(self, attrs: dict[str, Any]) -> None:
-        """Flush every buffer and write the root attributes (schema_version is set here)."""
+    def close(self, attrs: dict[str, Any], view_sources: tuple[str, ...] = ("view",)) -> None:
+        """Flush every buffer and write the root attributes (schema_version is set here).
+        view_sources: the names behind frames/view_source's codes (the view backend's sources)."""
         for key in self.arrays:
             self._push(key, None, force=True)
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
+        self.arrays["frames/view_source"].attrs["names"] = list(view_sources)
         attrs = {**attrs, "schema_version": SCHEMA_VERSION}
         validate_store_attrs(attrs)
         self.root.attrs.update(attrs)

@@ -12,6 +12,7 @@ from ga3ce_prep.estimators.facemesh import (FaceDetection, FaceMeshEstimator, bl
                                             facing_direction, head_direction)
 from ga3ce_prep.estimators.ssd import decode_regressors, ssd_anchors, weighted_nms
 from ga3ce_prep.geometry import back_project, look_at_rotation, normalize
+from ga3ce_prep.skeleton import J
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.testing.photos import K_from_hfov, mirrored, photo, photo_frame
@@ -185,12 +186,28 @@ def test_backend_view_check_and_pickling(tmp_path):
     cls = backend_class("view", "facemesh")
     backend = cls({}, BackendContext(tmp_path))
     backend.check()
-    v = backend.view(photo_frame(tmp_path, "astronaut", photo("astronaut"), ASTRONAUT_HEAD))
+    no_pose = np.full((30, 3), np.nan, np.float32)
+    r = backend.view(photo_frame(tmp_path, "astronaut", photo("astronaut"), ASTRONAUT_HEAD), pose=no_pose)
+    v = r.value
+    assert r.source == "face"
     assert v.dtype == np.float32 and v.shape == (3,) and v[2] < -0.8
-    with pytest.raises(FrameError):
-        backend.view(photo_frame(tmp_path, "chelsea", photo("chelsea"), CHELSEA_BACKGROUND))
+    with pytest.raises(FrameError, match="no nose and ears"):
+        backend.view(photo_frame(tmp_path, "chelsea", photo("chelsea"), CHELSEA_BACKGROUND), pose=no_pose)
     clone = pickle.loads(pickle.dumps(backend))  # the interpreters stay behind and are rebuilt
-    np.testing.assert_array_equal(clone.view(photo_frame(tmp_path, "astronaut", photo("astronaut"), ASTRONAUT_HEAD)), v)
+    again = clone.view(photo_frame(tmp_path, "astronaut", photo("astronaut"), ASTRONAUT_HEAD), pose=no_pose)
+    np.testing.assert_array_equal(again.value, v)
+
+
+def test_no_face_falls_back_to_the_poses_head_direction(tmp_path):
+    backend = backend_class("view", "facemesh")({}, BackendContext(tmp_path))
+    pose = np.full((30, 3), np.nan, np.float32)
+    pose[J["lear"]], pose[J["rear"]], pose[J["nose"]] = (0.08, 0, 3), (-0.08, 0, 3), (0, 0.01, 2.9)
+    r = backend.view(photo_frame(tmp_path, "chelsea", photo("chelsea"), CHELSEA_BACKGROUND), pose=pose)
+    assert r.source == "pose"
+    np.testing.assert_allclose(r.value, np.array([0, 0.1, -1]) / np.sqrt(1.01), atol=1e-6)
+    strict = backend_class("view", "facemesh")({"pose_fallback": False}, BackendContext(tmp_path))
+    with pytest.raises(FrameError):
+        strict.view(photo_frame(tmp_path, "chelsea", photo("chelsea"), CHELSEA_BACKGROUND), pose=pose)
 
 
 def test_check_refuses_a_damaged_model_naming_the_fix(tmp_path, monkeypatch):

@@ -11,7 +11,8 @@ from ga3ce_prep.model import GA3CE
 from ga3ce_prep.store import StoreWriter, open_store
 from ga3ce_prep.train import BucketBatchSampler, ContextDataset, DatasetProfile, collate, store_fingerprint
 from ga3ce_prep.train.augment import view_noise
-from ga3ce_prep.train.baselines import choose_snap_cone, head_direction_from_pose, snap_to_object
+from ga3ce_prep.skeleton import head_direction_from_pose
+from ga3ce_prep.train.baselines import choose_snap_cone, snap_to_object
 from ga3ce_prep.train.metrics import angular_errors_2d, summarize
 from ga3ce_prep.train.schedule import warmup_cosine_lr
 

@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError, ModelFileError
-from ..stages import STAGES, backend_class
+from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
 from .schema import SCHEMA_FILE
 
@@ -55,6 +55,7 @@ class PipelineConfig:
     shard_size: int
     cache_depth_maps: bool
     config: dict[str, Any]
+    upstream: dict[str, tuple[str, ...]]  # each stage's effective upstream (stages.upstream_of)
 
 
 def schema() -> dict[str, Any]:
@@ -173,7 +174,8 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
         name=cfg["name"], file=where, sha256=hashlib.sha256(text).hexdigest(),
         dataset_format=cfg["dataset"]["format"], dataset_options=dict(cfg["dataset"]["options"]),
         stages=stages, shard_size=int(cfg["run"]["shard_size"]),
-        cache_depth_maps=bool(cfg["run"]["cache_depth_maps"]), config=cfg)
+        cache_depth_maps=bool(cfg["run"]["cache_depth_maps"]), config=cfg,
+        upstream=upstream_of({s: sc.backend for s, sc in stages.items()}))
     if check_files:
         check_pipeline(conf, data_root)
     return conf

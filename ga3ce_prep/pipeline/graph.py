@@ -1,11 +1,11 @@
 """The dask graph over shards and its execution, with one progress bar per task kind.
 
 Per shard, only the tasks whose cache entries are missing enter the graph, as `dask.delayed`
-calls named `<kind>-<shard index>`:
+calls named `<kind>-<shard index>` (`tasks.task_stages`, `tasks.task_upstream`):
 
-    input-i --> geometry-i   depth, objects, head
+    input-i --> geometry-i   depth, objects, head (and pose, when its backend reads the depth)
            \\-> pose-i
-           \\-> view-i
+           \\-> view-i      (after pose-i or geometry-i when its backend reads the pose)
 
 Schedulers: the local threaded scheduler by default (`workers=None`); `workers=N` starts a
 `distributed.LocalCluster` of N single-threaded worker processes (parallelism without the GIL:
@@ -24,47 +24,49 @@ from dask import delayed
 from dask.delayed import Delayed
 
 from .cache import Cache
-from .tasks import GEOMETRY, Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, warm
-
-TASK_STAGES: dict[str, tuple[str, ...]] = {
-    "input": ("input",), "geometry": GEOMETRY, "pose": ("pose",), "view": ("view",),
-}
-BAR_LABELS = {"input": "input", "geometry": "depth+objects+head", "pose": "pose", "view": "view"}
+from .tasks import Shard, StageReport, TaskEnv, geometry_task, input_task, stage_task, task_stages, task_upstream, warm
 
 
 def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[str, int]]:
     """(the tasks to run, frames already cached per task kind)."""
     cache = Cache(env.cache_root)
+    kinds, after = task_stages(env.upstream), task_upstream(env.upstream)
     tasks: list[Delayed] = []
-    cached = {k: 0 for k in TASK_STAGES}
+    cached = {k: 0 for k in kinds}
     for s in shards:
-        need = {kind: any(not cache.has(st, s.keys[st]) for st in stages) for kind, stages in TASK_STAGES.items()}
-        for kind in TASK_STAGES:
-            if not need[kind]:
+        made: dict[str, Delayed] = {}
+        for kind, stages in kinds.items():  # dependency order: a task's upstream tasks come first
+            if all(cache.has(st, s.keys[st]) for st in stages):
                 cached[kind] += len(s.frames)
-        up = None
-        if need["input"]:
-            up = delayed(input_task)(env, s, dask_key_name=f"input-{s.index}")
-            tasks.append(up)
-        if need["geometry"]:
-            tasks.append(delayed(geometry_task)(env, s, up, dask_key_name=f"geometry-{s.index}"))
-        for kind in ("pose", "view"):
-            if need[kind]:
-                tasks.append(delayed(stage_task)(env, kind, s, up, dask_key_name=f"{kind}-{s.index}"))
+                continue
+            up = [made[k] for k in after[kind] if k in made]
+            name = f"{kind}-{s.index}"
+            if kind == "input":
+                made[kind] = delayed(input_task)(env, s, dask_key_name=name)
+            elif kind == "geometry":
+                made[kind] = delayed(geometry_task)(env, s, *up, dask_key_name=name)
+            else:
+                made[kind] = delayed(stage_task)(env, kind, s, *up, dask_key_name=name)
+            tasks.append(made[kind])
     return tasks, cached
+
+
+def _bar_label(kind: str, stages: tuple[str, ...]) -> str:
+    return "+".join(stages) if kind == "geometry" else kind
 
 
 class _Bars:
     """One tqdm bar per task kind, counting frames."""
 
-    def __init__(self, shards: list[Shard], cached: dict[str, int], progress: bool):
+    def __init__(self, kinds: dict[str, tuple[str, ...]], shards: list[Shard], cached: dict[str, int],
+                 progress: bool):
         from tqdm import tqdm
 
         total = sum(len(s.frames) for s in shards)
         self.size = {s.index: len(s.frames) for s in shards}
-        self.bars = {k: tqdm(total=total, initial=cached[k], desc=f"{BAR_LABELS[k]:>18}", unit="frame",
+        self.bars = {k: tqdm(total=total, initial=cached[k], desc=f"{_bar_label(k, st):>18}", unit="frame",
                              position=i, disable=not progress, leave=True, dynamic_ncols=True)
-                     for i, k in enumerate(TASK_STAGES)}
+                     for i, (k, st) in enumerate(kinds.items())}
 
     def done(self, key: str) -> None:
         """Task `<kind>-<shard index>` finished."""
@@ -81,7 +83,7 @@ def execute(env: TaskEnv, shards: list[Shard], workers: int | None = None, sched
     """Run the shards' missing tasks; returns their reports and the compute seconds (wall time from
     the workers being ready, backends built, to the last task)."""
     tasks, cached = build_graph(env, shards)
-    bars = _Bars(shards, cached, progress)
+    bars = _Bars(task_stages(env.upstream), shards, cached, progress)
     try:
         if not tasks:
             return [], 0.0

@@ -26,7 +26,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef
-from ..stages import STAGES, UPSTREAM, backend_class
+from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
@@ -110,8 +110,8 @@ def shard_keys(conf: PipelineConfig, frames: list[FrameRef], data_root: Path,
     """The cache key of every stage for one shard of frames."""
     keys: dict[str, str] = {}
     shard_id = stable_hash([_frame_identity(f) for f in frames])
-    for stage in STAGES:
-        up = [keys[u] for u in UPSTREAM[stage]]
+    for stage in dependency_order(conf.upstream):
+        up = [keys[u] for u in conf.upstream[stage]]
         keys[stage] = stable_hash({"ident": idents[stage], "upstream": up,
                                    "frames": shard_id if stage == "input" else None,
                                    "data_root": str(data_root) if stage == "input" else None})
@@ -139,12 +139,14 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         cache = Cache(work / "cache")
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
-        env = TaskEnv(cache.root, data_root, conf.stages, conf.cache_depth_maps)
+        env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
         reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
         t_fin = time.perf_counter()
+        view = conf.stages["view"]
+        view_sources = backend_class("view", view.backend).sources or (view.backend,)
         counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                   progress=progress)
+                                   view_sources, progress=progress)
         fin_seconds = time.perf_counter() - t_fin
     return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
                       finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)

@@ -3,8 +3,7 @@
 adapters (`ga3ce_prep.datasets.ADAPTERS`).
 
 `schemas/pipeline.schema.json` is its committed copy, for editors and other tools, and the copy the
-loader validates against (reading it needs no backend import). `make schema` (or
-`python -m ga3ce_prep.pipeline.schema --write`) rewrites it; a test fails while it is stale.
+loader validates against (reading it needs no backend import). `make schema` rewrites it; a test fails while it is stale.
 """
 from __future__ import annotations
 

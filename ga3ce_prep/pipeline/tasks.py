@@ -1,13 +1,16 @@
 """The work of one shard, as dask tasks: each task computes the stage entries of its shard that are
 not in the cache yet, writes them atomically, and returns small `StageReport`s (never the arrays).
 
-Tasks per shard (their dependencies are the stage dependencies):
+Tasks per shard (`task_stages`; their dependencies are the stages' effective upstream):
 
     input     -> its entry (ok flags, failures)
-    geometry  -> depth, objects, head entries (one task: the depth map is computed once and used by
-                 both consumers; it is kept in the cache only with run.cache_depth_maps)
-    pose      -> its entry
+    geometry  -> depth and every stage that reads the depth map: objects, head, and pose when its
+                 backend refines with depth (one task: the depth map is computed once and used by
+                 every consumer; it is kept in the cache only with run.cache_depth_maps)
+    pose      -> its entry (when it does not read the depth map)
     view      -> its entry
+A stage reading another stage's output (`Backend.needs`, e.g. a view falling back to the pose)
+gets it from that stage's cache entry, or from the same task when both run there.
 
 Entry arrays (n = frames in the shard, ids for a sanity check; `new_entry` builds each layout):
     all:      ids (n,) str, ok (n,) bool, fail_idx (k,) int, fail_error (k,) str, fail_message (k,) str,
@@ -17,7 +20,9 @@ Entry arrays (n = frames in the shard, ids for a sanity check; `new_entry` build
     head:     head_pos (n, 3) float32
     pose:     pose (n, 30, 3) float32 (NaN where failed)
     view:     view (n, 3) float32
-A frame whose upstream stage failed is skipped (ok False, no second failure record).
+    + with a backend that declares `sources`: source (n,) int8 (index into them, -1 where failed)
+A frame whose dropping upstream stage (input, depth) failed is skipped (ok False, no second
+failure record); an optional upstream that failed for a frame (pose) is passed as NaN.
 """
 from __future__ import annotations
 
@@ -33,11 +38,12 @@ import numpy as np
 from ..errors import Ga3ceError
 from ..frames import FrameRef
 from ..skeleton import N_JOINTS
-from ..stages.base import DepthMap
+from ..stages import UPSTREAM, dependency_order
+from ..stages.base import DepthMap, Sourced
 from .cache import Cache
 from .config import StageConfig
 
-GEOMETRY: tuple[str, ...] = ("depth", "objects", "head")  # the stages of the geometry task
+VALUE_COLUMN = {"pose": "pose", "view": "view", "head": "head_pos"}  # a stage's per-frame value in its entry
 
 _backends: dict[tuple, Any] = {}
 
@@ -62,7 +68,30 @@ class TaskEnv:
     cache_root: Path
     data_root: Path
     stages: dict[str, StageConfig]
+    upstream: dict[str, tuple[str, ...]]  # each stage's effective upstream (stages.upstream_of)
     cache_depth_maps: bool = False
+
+
+def task_stages(upstream: dict[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]]:
+    """The stages each task kind computes, in dependency order (module docstring)."""
+    order = dependency_order(upstream)
+    geometry = tuple(s for s in order if s == "depth" or "depth" in upstream[s])
+    # in an order where every kind comes after the kinds it waits for (pose never reads the view)
+    kinds = {"input": ("input",)}
+    if "pose" not in geometry:
+        kinds["pose"] = ("pose",)
+    kinds["geometry"] = geometry
+    if "view" not in geometry:
+        kinds["view"] = ("view",)
+    return kinds
+
+
+def task_upstream(upstream: dict[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]]:
+    """The task kinds each task kind waits for."""
+    kinds = task_stages(upstream)
+    home = {s: k for k, stages in kinds.items() for s in stages}
+    return {k: tuple(dict.fromkeys(home[u] for s in stages for u in upstream[s] if home[u] != k))
+            for k, stages in kinds.items()}
 
 
 @dataclass
@@ -111,8 +140,10 @@ class StageEntry:
     """
 
     def __init__(self, stage: str, shard: Shard, values: Callable[[Any], dict[str, Any]] = lambda _: {},
-                 ragged: dict[str, np.ndarray] | None = None, **columns: np.ndarray):
-        self.stage, self.shard, self.values = stage, shard, values
+                 ragged: dict[str, np.ndarray] | None = None, sources: tuple[str, ...] = (), **columns: np.ndarray):
+        self.stage, self.shard, self.values, self.sources = stage, shard, values, sources
+        if sources:
+            columns["source"] = np.full(len(shard.frames), -1, np.int8)
         self.mask = np.zeros(len(shard.frames), bool)
         self.fail_idx: list[int] = []
         self.fail_error: list[str] = []
@@ -146,13 +177,20 @@ class StageEntry:
         self.fail_error.append(type(e).__name__)
         self.fail_message.append(msg)
 
-    def attempt(self, i: int, fn: Callable[..., Any], *args: Any) -> Any:
-        """fn(*args) for frame i, timed: its result (frame i ok with its values), or None after a
-        failure record."""
+    def attempt(self, i: int, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """fn(*args, **kwargs) for frame i, timed: its result (frame i ok with its values, and its
+        source when the backend declares sources), or None after a failure record."""
         t = time.perf_counter()
         try:
-            out = fn(*args)
-            self.ok(i, **self.values(out))
+            out = fn(*args, **kwargs)
+            if self.sources:
+                if not isinstance(out, Sourced) or out.source not in self.sources:
+                    raise ValueError(f"{self.stage} backend must return Sourced(value, source in {self.sources}), "
+                                     f"got {type(out).__name__}")
+                out, source = out.value, {"source": self.sources.index(out.source)}
+            else:
+                source = {}
+            self.ok(i, **self.values(out), **source)
             return out
         except Exception as e:  # noqa: BLE001 - every per-frame problem becomes a record
             self.fail(i, e)
@@ -181,8 +219,9 @@ def _shaped(v: Any, shape: tuple[int, ...], stage: str) -> np.ndarray:
     return v
 
 
-def new_entry(stage: str, shard: Shard) -> StageEntry:
-    """An empty entry of `stage` for `shard`, with its columns (module docstring)."""
+def new_entry(stage: str, shard: Shard, sources: tuple[str, ...] = ()) -> StageEntry:
+    """An empty entry of `stage` for `shard`, with its columns (module docstring); `sources`: the
+    backend's."""
     n = len(shard.frames)
     if stage == "depth":  # DepthMap
         return StageEntry(stage, shard,
@@ -195,27 +234,46 @@ def new_entry(stage: str, shard: Shard) -> StageEntry:
                                   "score": np.zeros(0, np.float32)},
                           count=np.zeros(n, np.int32), n_dropped=np.zeros(n, np.int32))
     if stage == "head":  # (3,) t_object
-        return StageEntry(stage, shard, lambda hp: {"head_pos": hp}, head_pos=np.full((n, 3), np.nan, np.float32))
+        return StageEntry(stage, shard, lambda hp: {"head_pos": hp}, sources=sources,
+                          head_pos=np.full((n, 3), np.nan, np.float32))
     if stage in ("pose", "view"):  # (N_JOINTS, 3) or (3,)
         shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
-        return StageEntry(stage, shard, lambda v: {stage: _shaped(v, shape, stage)},
+        return StageEntry(stage, shard, lambda v: {stage: _shaped(v, shape, stage)}, sources=sources,
                           **{stage: np.full((n, *shape), np.nan, np.float32)})
     return StageEntry(stage, shard)  # input: ok flags and failures only
 
 
-def run_frames(shard: Shard, fn: Callable[[FrameRef], Any], entry: StageEntry, only: np.ndarray | None = None) -> None:
-    """entry.attempt(i, fn, frame) for every frame i of the shard (where `only` (n,) bool is True)."""
-    for i, f in enumerate(shard.frames):
-        if only is None or only[i]:
-            entry.attempt(i, fn, f)
-
-
 def _load_ok(cache: Cache, stage: str, shard: Shard) -> np.ndarray:
+    return _load(cache, stage, shard)["ok"]
+
+
+def _load(cache: Cache, stage: str, shard: Shard) -> dict[str, np.ndarray]:
     e = cache.load(stage, shard.keys[stage])
     if e is None:
         raise RuntimeError(f"cache entry {stage}/{shard.keys[stage]} vanished: was the cache directory "
                            f"{cache.root} changed during the run? Rerun to recompute it")
-    return e["ok"]
+    return e
+
+
+def _values(cache: Cache, stage: str, shard: Shard) -> np.ndarray:
+    """A finished stage's per-frame values (n, ...) from its cache entry, NaN where it failed."""
+    e = _load(cache, stage, shard)
+    v = np.array(e[VALUE_COLUMN[stage]], np.float32)
+    v[~e["ok"]] = np.nan
+    return v
+
+
+def _sources(env: TaskEnv, stage: str) -> tuple[str, ...]:
+    return backend(env, stage).sources
+
+
+def _call(env: TaskEnv, entry: StageEntry, i: int, frame: FrameRef, inputs: dict[str, Any]) -> Any:
+    """Frame i through its stage's backend, with the stage's own upstream input (the depth map for
+    objects and head) positionally and the backend's `needs` by keyword, from `inputs`."""
+    stage = entry.stage
+    b = backend(env, stage)
+    args = [inputs[u] for u in UPSTREAM[stage] if u != "input"]
+    return entry.attempt(i, getattr(b, stage), frame, *args, **{n: inputs[n] for n in b.needs})
 
 
 def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:
@@ -225,18 +283,23 @@ def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:
         return [StageReport("input", len(shard.frames))]
     _single_threaded()
     entry = new_entry("input", shard)
-    run_frames(shard, backend(env, "input").check_frame, entry)
+    fn = backend(env, "input").check_frame
+    for i, f in enumerate(shard.frames):
+        entry.attempt(i, fn, f)
     return [entry.save(cache)]
 
 
-def stage_task(env: TaskEnv, stage: str, shard: Shard, _upstream: Any = None) -> list[StageReport]:
-    """A per-frame stage without depth: pose (N_JOINTS, 3) or view (3,)."""
+def stage_task(env: TaskEnv, stage: str, shard: Shard, *_upstream: Any) -> list[StageReport]:
+    """A per-frame stage without the depth map: pose (N_JOINTS, 3) or view (3,), reading the values
+    of the stages it needs from their cache entries."""
     cache = Cache(env.cache_root)
     if cache.has(stage, shard.keys[stage]):
         return [StageReport(stage, len(shard.frames))]
     _single_threaded()
-    entry = new_entry(stage, shard)
-    run_frames(shard, getattr(backend(env, stage), stage), entry, only=_load_ok(cache, "input", shard))
+    entry = new_entry(stage, shard, _sources(env, stage))
+    loaded = {u: _values(cache, u, shard) for u in env.upstream[stage] if u != "input"}
+    for i in np.flatnonzero(_load_ok(cache, "input", shard)):
+        _call(env, entry, i, shard.frames[i], {u: v[i] for u, v in loaded.items()})
     return [entry.save(cache)]
 
 
@@ -262,27 +325,36 @@ def _depth_for(i: int, frame: FrameRef, depth: StageEntry, compute: Callable[[Fr
     return dm
 
 
-def geometry_task(env: TaskEnv, shard: Shard, _upstream: Any = None) -> list[StageReport]:
-    """Depth, then objects and head from it, for the frames that passed the input checks."""
+def geometry_task(env: TaskEnv, shard: Shard, *_upstream: Any) -> list[StageReport]:
+    """Depth, then every stage that reads it (objects, head, and a depth-refined pose), in
+    dependency order, for the frames that passed the input checks."""
+    geometry = task_stages(env.upstream)["geometry"]
     cache = Cache(env.cache_root)
-    todo = {s for s in GEOMETRY if not cache.has(s, shard.keys[s])}
+    todo = {s for s in geometry if not cache.has(s, shard.keys[s])}
     if not todo:
-        return [StageReport(s, len(shard.frames)) for s in GEOMETRY]
+        return [StageReport(s, len(shard.frames)) for s in geometry]
     _single_threaded()
     cached = None if "depth" in todo else _reusable_depth(cache, shard, env.cache_depth_maps)
     if cached is None:
         todo.add("depth")
-    entries = {s: new_entry(s, shard) for s in GEOMETRY}
-    compute = {s: getattr(backend(env, s), s) for s in GEOMETRY if s == "depth" or s in todo}
+    entries = {s: new_entry(s, shard, _sources(env, s)) for s in geometry}
+    # values of the stages read here that are not computed here: other tasks' or already cached
+    read = {u for s in geometry if s in todo for u in env.upstream[s]} - {"input", "depth"}
+    loaded = {u: _values(cache, u, shard) for u in read if u not in todo}
     ok = _load_ok(cache, "input", shard)
     if cached is not None:
-        ok = ok & cached["ok"]  # a frame whose depth failed has no objects or head either
+        ok = ok & cached["ok"]  # a frame whose depth failed has nothing that reads it either
+    depth_fn = backend(env, "depth").depth
     for i in np.flatnonzero(ok):
         f = shard.frames[i]
-        dm = _depth_for(i, f, entries["depth"], compute["depth"], cached, env.cache_depth_maps)
+        dm = _depth_for(i, f, entries["depth"], depth_fn, cached, env.cache_depth_maps)
         if dm is None:
             continue
-        for s in ("objects", "head"):
+        inputs = {"depth": dm, **{u: v[i] for u, v in loaded.items()}}
+        for s in geometry[1:]:
             if s in todo:
-                entries[s].attempt(i, compute[s], f, dm)
-    return [entries[s].save(cache) if s in todo else entries[s].report(False) for s in GEOMETRY]
+                out = _call(env, entries[s], i, f, inputs)
+                if s in VALUE_COLUMN:
+                    inputs[s] = entries[s].columns[VALUE_COLUMN[s]][i] if out is not None else \
+                        np.full(entries[s].columns[VALUE_COLUMN[s]].shape[1:], np.nan, np.float32)
+    return [entries[s].save(cache) if s in todo else entries[s].report(False) for s in geometry]

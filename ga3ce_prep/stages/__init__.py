@@ -9,6 +9,10 @@ Stages, in dependency order, and what a failure of each does to the frame (docs/
     pose     P_pose (30, 3)                              failure degrades it: NaN pose
     view     the view prior v                            failure drops the frame
 
+A backend may read more upstream stages than its stage's own (`Backend.needs`, within
+`OPTIONAL_UPSTREAM`): a pose estimator refining with the depth map, a view estimator falling back
+to the pose when no face is visible. `upstream_of` gives a pipeline's effective dependencies.
+
 Backends are imported only when a pipeline names them (Open3D, h5py stay unloaded otherwise).
 Backends registered as `Planned` belong to a later issue: a pipeline naming one fails before any
 work with a clear message.
@@ -26,6 +30,8 @@ UPSTREAM: dict[str, tuple[str, ...]] = {
     "input": (), "depth": ("input",), "objects": ("depth",), "head": ("depth",),
     "pose": ("input",), "view": ("input",),
 }
+# what a backend may add to its stage's upstream (Backend.needs)
+OPTIONAL_UPSTREAM: dict[str, tuple[str, ...]] = {"pose": ("depth",), "view": ("pose",), "head": ("pose",)}
 # True: a failure of this stage drops the frame from the store; False: the frame is kept, degraded.
 DROPS_FRAME: dict[str, bool] = {
     "input": True, "depth": True, "objects": False, "head": True, "pose": False, "view": True,
@@ -74,4 +80,31 @@ def backend_class(stage: str, name: str) -> type[Backend]:
     return getattr(importlib.import_module(module), cls)
 
 
-__all__ = ["BACKENDS", "DROPS_FRAME", "STAGES", "UPSTREAM", "Planned", "backend_class"]
+def upstream_of(backends: dict[str, str]) -> dict[str, tuple[str, ...]]:
+    """Each stage's effective upstream for the chosen backends (stage -> backend name): its own
+    plus what the backend `needs`. ConfigError for a need outside OPTIONAL_UPSTREAM."""
+    up = {}
+    for stage in STAGES:
+        entry = BACKENDS.get(f"{stage}/{backends[stage]}")
+        needs = () if entry is None or isinstance(entry, Planned) else backend_class(stage, backends[stage]).needs
+        bad = [n for n in needs if n not in OPTIONAL_UPSTREAM.get(stage, ())]
+        if bad:
+            raise ConfigError(f"stages.{stage}: backend {backends[stage]!r} needs {bad}, which a {stage} backend "
+                              f"may not read (allowed: {list(OPTIONAL_UPSTREAM.get(stage, ()))})")
+        up[stage] = UPSTREAM[stage] + tuple(n for n in needs if n not in UPSTREAM[stage])
+    return up
+
+
+def dependency_order(upstream: dict[str, tuple[str, ...]]) -> list[str]:
+    """The stages in an order where each comes after its upstream (STAGES order breaks ties)."""
+    order: list[str] = []
+    while len(order) < len(STAGES):
+        ready = [s for s in STAGES if s not in order and all(u in order for u in upstream[s])]
+        if not ready:
+            raise ConfigError(f"the stages' dependencies form a cycle: {upstream}")
+        order.append(ready[0])
+    return order
+
+
+__all__ = ["BACKENDS", "DROPS_FRAME", "OPTIONAL_UPSTREAM", "STAGES", "UPSTREAM", "Planned", "backend_class",
+           "dependency_order", "upstream_of"]

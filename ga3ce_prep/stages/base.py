@@ -64,6 +64,15 @@ class BackendContext:
     data_root: Path
 
 
+@dataclass
+class Sourced:
+    """A per-frame result and the name of the way it came about (one of its backend's `sources`),
+    e.g. a view prior from the face mesh or, when no face is visible, from the pose."""
+
+    value: Any
+    source: str
+
+
 @dataclass(frozen=True, kw_only=True)
 class NoParams:
     """The parameters of a backend that has none."""
@@ -77,6 +86,12 @@ class Backend:
     name: ClassVar[str] = ""
     version: ClassVar[str] = "1"  # part of the cache key: bump when outputs change for the same params
     Params: ClassVar[type] = NoParams
+    # Upstream stages the per-frame method also reads, passed by keyword (`view(frame, pose=...)`):
+    # allowed ones are stages.OPTIONAL_UPSTREAM. A failed upstream frame passes NaN.
+    needs: ClassVar[tuple[str, ...]] = ()
+    # The ways a frame's result can come about; when set, the per-frame method returns `Sourced`
+    # and the store records the source of every frame (frames/<stage>_source).
+    sources: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")

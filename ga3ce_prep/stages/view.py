@@ -19,7 +19,8 @@ from ..estimators.facemesh import FaceMeshOptions
 from ..frames import FrameRef, load_rgb
 from ..geometry import normalize
 from ..params import param
-from .base import ProcessEstimator, ViewBackend
+from ..skeleton import head_direction_from_pose
+from .base import ProcessEstimator, Sourced, ViewBackend
 from .oracle_noise import frame_rng, noisy_view
 from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
@@ -79,16 +80,19 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
     facing direction of its landmarks, perspective-corrected with K (estimators/facemesh.py).
     The models come from the registry cache (`ga3ce-prep models fetch`), SHA-256 checked.
 
-    A frame where no face is visible (the subject faces away, an occluded or tiny face) fails with
-    FrameError. The fallback from the pose stage's keypoints (`train/baselines.py`
-    `head_direction_from_pose`) is not wired into the view stage yet."""
+    Where no face is visible (the subject faces away, an occluded or tiny face), v is the head
+    direction of the pose stage's keypoints (`skeleton.head_direction_from_pose`: ears to nose),
+    and the store records which source gave each frame's v (frames/view_source: "face" or
+    "pose"). With neither, the frame fails with FrameError (and is dropped)."""
 
     name = "facemesh"
     MODELS = ("face_detection", "face_landmark")  # registry_models keys: BlazeFace short-range, face mesh
+    needs = ("pose",)
+    sources = ("face", "pose")
 
     @dataclass(frozen=True, kw_only=True)
     class Params(FaceMeshOptions):
-        """FaceMeshOptions: LiteRT threads, the detector crop, thresholds and the mesh crop."""
+        pose_fallback: bool = True  # no face visible: v = the pose's head direction (ears to nose); false: the frame fails
 
     def check(self) -> None:
         from .. import registry_models
@@ -102,6 +106,15 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
 
         return FaceMeshEstimator(*(model_path(k) for k in self.MODELS), self.p)
 
-    def view(self, frame: FrameRef) -> np.ndarray:
-        res = self.estimator().estimate(load_rgb(frame.image_path), frame.head_box, frame.K)
-        return res.direction.astype(np.float32)
+    def view(self, frame: FrameRef, pose: np.ndarray) -> Sourced:
+        """pose: (30, 3) the pose stage's output for the frame (NaN where it failed)."""
+        try:
+            res = self.estimator().estimate(load_rgb(frame.image_path), frame.head_box, frame.K)
+            return Sourced(res.direction.astype(np.float32), "face")
+        except FrameError as no_face:
+            if not self.p.pose_fallback:
+                raise
+            d, ok = head_direction_from_pose(np.asarray(pose, np.float64)[None], np.full((1, 3), np.nan))
+            if not ok[0]:
+                raise FrameError(f"{no_face}; and the pose has no nose and ears to fall back on") from None
+            return Sourced(d[0].astype(np.float32), "pose")

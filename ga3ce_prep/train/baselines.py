@@ -1,7 +1,7 @@
 """Non-learned baselines every evaluation reports on the same frames as the model.
 
 - the view prior v itself (GA3CE's "appearance only" row);
-- the head direction implied by the pose keypoints: from the midpoint of the ears to the nose;
+- the head direction implied by the pose keypoints (`skeleton.head_direction_from_pose`);
 - snap to object: v replaced by the direction from the head (t_object) to the stored object
   closest in angle to v, when that object lies within a cone of half-angle `cone_deg` around v.
 All numpy, vectorised; directions are unit (n, 3), camera frame.
@@ -11,21 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import angular_error_deg, normalize
-from ..skeleton import J
 
 SNAP_CONES_DEG: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0)
-
-
-def head_direction_from_pose(pose: np.ndarray, fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """normalise(nose - (left ear + right ear) / 2) from smpl+head_30 poses (n, 30, 3).
-
-    Frames missing the nose or an ear take `fallback` (n, 3) (pass v). Returns (directions (n, 3),
-    ok (n,) bool: the pose gave the direction)."""
-    nose, lear, rear = pose[:, J["nose"]], pose[:, J["lear"]], pose[:, J["rear"]]
-    d = nose - 0.5 * (lear + rear)
-    ok = np.isfinite(d).all(1) & (np.linalg.norm(np.nan_to_num(d), axis=1) > 1e-6)
-    out = np.where(ok[:, None], normalize(np.nan_to_num(d)), fallback)
-    return out, ok
 
 
 def snap_to_object(view: np.ndarray, head_pos: np.ndarray, objects: np.ndarray, mask: np.ndarray,

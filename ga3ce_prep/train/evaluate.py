@@ -19,8 +19,9 @@ import torch
 
 from ..geometry import angular_error_deg
 from ..model import GA3CE
+from ..skeleton import head_direction_from_pose
 from ..store import ContextStore, open_store
-from .baselines import choose_snap_cone, head_direction_from_pose, snap_to_object
+from .baselines import choose_snap_cone, snap_to_object
 from .checkpoint import build_model, check_checkpoint, load_checkpoint
 from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
 from .metrics import summarize
