@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import onnx
@@ -524,15 +525,16 @@ class FastDecoder:
     """The restructured decoder on ONNX Runtime: `set_image` once per image, then `predict_iou` for a
     batch of prompts and `low_res_masks` for the prompts whose candidates are wanted.
 
-    decoder_path: the official decoder ONNX (its weights are read from it). providers: execution
-    providers in preference order (see onnx_runtime.resolve_providers)."""
+    decoder_path: the official decoder ONNX (its weights are read from it).
+    providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
+    threads: intra-op threads of each of the three sessions."""
 
     # Prompts per token-graph call: 4 on CPU (measured per batch size in docs/models.md, "Speed"),
     # GPU_BATCH_SIZE on other providers.
     CPU_BATCH_SIZE = 4
     GPU_BATCH_SIZE = 64
 
-    def __init__(self, decoder_path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
+    def __init__(self, decoder_path: str | Path, providers: Sequence[str], threads: int):
         from .onnx_runtime import create_session
 
         w = decoder_weights(decoder_path)

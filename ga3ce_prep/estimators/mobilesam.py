@@ -19,7 +19,7 @@ import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -87,9 +87,13 @@ def _check_rgb(rgb: np.ndarray) -> np.ndarray:
 # Runners
 # ---------------------------------------------------------------------------------------------
 class ImageEncoder:
-    """The image encoder ONNX, in either form (see module docstring)."""
+    """The image encoder ONNX, in either form (see module docstring).
 
-    def __init__(self, path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
+    path: the encoder ONNX file.
+    providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
+    threads: intra-op threads of the session."""
+
+    def __init__(self, path: str | Path, providers: Sequence[str], threads: int):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM encoder")
         ins = self.session.get_inputs()
@@ -121,9 +125,13 @@ class OfficialDecoder:
 
     Batches prompts when the file's batch axis is dynamic, loops one prompt per call when it is
     fixed (the official export). Also usable through the fast decoder's interface
-    (set_image / predict_iou / low_res_masks), keeping each batch's low-res masks."""
+    (set_image / predict_iou / low_res_masks), keeping each batch's low-res masks.
 
-    def __init__(self, path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
+    path: the decoder ONNX file.
+    providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
+    threads: intra-op threads of the session."""
+
+    def __init__(self, path: str | Path, providers: Sequence[str], threads: int):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM decoder")
         check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
