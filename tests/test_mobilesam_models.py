@@ -10,7 +10,7 @@ from onnx import numpy_helper
 
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder, SegmenterOptions
+from ga3ce_prep.estimators.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
 from ga3ce_prep.testing.scripted import drawn_frame
 
 MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
@@ -133,3 +133,8 @@ def test_mask_graph_keeps_gelu_apart_from_its_bias(tmp_path):
 
 def test_fast_decoder_batch_size_follows_the_provider():
     assert FastDecoder(DEC, CPU, 1).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
+
+
+def test_both_decoders_are_mask_decoders():
+    assert isinstance(FastDecoder(DEC, CPU, 1), MaskDecoder)
+    assert isinstance(OfficialDecoder(DEC, CPU, 1, batch_size=64), MaskDecoder)
