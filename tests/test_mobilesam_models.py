@@ -114,11 +114,13 @@ def test_mask_graph_keeps_gelu_apart_from_its_bias(tmp_path):
     (if ORT renames it, this fails and the name must follow)."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder import MASK_GRAPH_DISABLED_OPTIMIZERS, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder import MASK_GRAPH_DISABLED_OPTIMIZERS
+    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
     from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
     from ga3ce_prep.estimators.onnx_runtime import session_options
 
-    graph = build_mask_graph(decoder_weights(DEC)).SerializeToString()
+    w = decoder_weights(DEC)
+    graph = build_mask_graph(w, Derived.from_weights(w)).SerializeToString()
 
     def optimized_ops(disabled):
         so = session_options(1)

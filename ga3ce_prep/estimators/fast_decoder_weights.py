@@ -22,6 +22,7 @@ D = 16        # per-head width of the cross attentions (256 / 2 / 8)
 N_OUT = 5     # output tokens: IoU + 4 mask tokens
 
 _ATTN = ("self_attn", "cross_attn_token_to_image", "cross_attn_image_to_token")
+_PROJ = ("q_proj", "k_proj", "v_proj", "out_proj")
 
 
 class _OnnxParams:
@@ -83,49 +84,66 @@ def decoder_weights(path: str | Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ModelFileError(f"decoder ONNX not found: {path}")
     p = _OnnxParams(path)
-    w: dict[str, np.ndarray] = {}
+    w = {**_prompt_encoder(p), **_transformer(p), **_mask_decoder(p)}
+    _check_shapes(w, path)
+    return w
+
+
+def _prompt_encoder(p: _OnnxParams) -> dict[str, np.ndarray]:
+    """PromptEncoder: the points' random Fourier features, the label embeddings, the no-mask embedding."""
     pe = "model.prompt_encoder."
-    w["pe_gaussian"] = p.named(pe + "pe_layer.positional_encoding_gaussian_matrix")
-    w["not_a_point"] = p.named(pe + "not_a_point_embed.weight").reshape(C)
+    w = {"pe_gaussian": p.named(pe + "pe_layer.positional_encoding_gaussian_matrix"),
+         "not_a_point": p.named(pe + "not_a_point_embed.weight").reshape(C),
+         "no_mask_embed": p.param("/Mul_9").reshape(C)}
     for i in range(4):
         w[f"point_embed.{i}"] = p.named(pe + f"point_embeddings.{i}.weight").reshape(C)
-    w["no_mask_embed"] = p.param("/Mul_9").reshape(C)
-    w["output_tokens"] = p.param("/Expand_1").reshape(N_OUT, C)
+    return w
+
+
+def _linear(p: _OnnxParams, scope: str, key: str) -> dict[str, np.ndarray]:
+    return {key + ".w": p.param(scope + "/MatMul"), key + ".b": p.param(scope + "/Add")}
+
+
+def _layer_norm(p: _OnnxParams, scope: str, key: str) -> dict[str, np.ndarray]:
+    node = scope + "/LayerNormalization"
+    return {key + ".g": p.param(node, 1), key + ".b": p.param(node, 2)}
+
+
+def _transformer(p: _OnnxParams) -> dict[str, np.ndarray]:
+    """TwoWayTransformer: both TwoWayAttentionBlocks, the final attention and its LayerNorm."""
+    w: dict[str, np.ndarray] = {}
     for layer in ("layers.0", "layers.1"):
+        scope = f"/transformer/{layer}"
         for att in _ATTN:
-            for proj in ("q_proj", "k_proj", "v_proj", "out_proj"):
-                base = f"/transformer/{layer}/{att}/{proj}"
-                w[f"{layer}.{att}.{proj}.w"] = p.param(base + "/MatMul")
-                w[f"{layer}.{att}.{proj}.b"] = p.param(base + "/Add")
+            for proj in _PROJ:
+                w |= _linear(p, f"{scope}/{att}/{proj}", f"{layer}.{att}.{proj}")
         for lin in ("lin1", "lin2"):
-            w[f"{layer}.mlp.{lin}.w"] = p.param(f"/transformer/{layer}/mlp/{lin}/MatMul")
-            w[f"{layer}.mlp.{lin}.b"] = p.param(f"/transformer/{layer}/mlp/{lin}/Add")
+            w |= _linear(p, f"{scope}/mlp/{lin}", f"{layer}.mlp.{lin}")
         for k in range(1, 5):
-            w[f"{layer}.norm{k}.g"] = p.param(f"/transformer/{layer}/norm{k}/LayerNormalization", 1)
-            w[f"{layer}.norm{k}.b"] = p.param(f"/transformer/{layer}/norm{k}/LayerNormalization", 2)
-    for proj in ("q_proj", "k_proj", "v_proj", "out_proj"):
-        base = f"/transformer/final_attn_token_to_image/{proj}"
-        w[f"final.{proj}.w"] = p.param(base + "/MatMul")
-        w[f"final.{proj}.b"] = p.param(base + "/Add")
-    w["norm_final.g"] = p.param("/transformer/norm_final_attn/LayerNormalization", 1)
-    w["norm_final.b"] = p.param("/transformer/norm_final_attn/LayerNormalization", 2)
+            w |= _layer_norm(p, f"{scope}/norm{k}", f"{layer}.norm{k}")
+    for proj in _PROJ:
+        w |= _linear(p, f"/transformer/final_attn_token_to_image/{proj}", f"final.{proj}")
+    w |= _layer_norm(p, "/transformer/norm_final_attn", "norm_final")
     w["ln_eps"] = np.float32(p.attr("/transformer/norm_final_attn/LayerNormalization", "epsilon"))
-    w["up0.w"] = p.param("/output_upscaling/output_upscaling.0/ConvTranspose", 1)
-    w["up0.b"] = p.param("/output_upscaling/output_upscaling.0/ConvTranspose", 2)
-    w["up1.g"] = p.param("/output_upscaling/output_upscaling.1/Mul").reshape(-1)
-    w["up1.b"] = p.param("/output_upscaling/output_upscaling.1/Add_1").reshape(-1)
-    w["up1.eps"] = p.param("/output_upscaling/output_upscaling.1/Add").reshape(())
-    w["up3.w"] = p.param("/output_upscaling/output_upscaling.3/ConvTranspose", 1)
-    w["up3.b"] = p.param("/output_upscaling/output_upscaling.3/ConvTranspose", 2)
-    for name, n_mlp in (("hyper", 4), ("iou", 1)):
-        for i in range(n_mlp):
-            scope = f"/output_hypernetworks_mlps.{i}" if name == "hyper" else "/iou_prediction_head"
-            for j in range(3):
-                gemm = f"{scope}/layers.{j}/Gemm"
-                wt = p.param(gemm, 1)
-                w[f"{name}.{i}.{j}.w"] = wt.T if p.attr(gemm, "transB") else wt
-                w[f"{name}.{i}.{j}.b"] = p.param(gemm, 2)
-    _check_shapes(w, path)
+    return w
+
+
+def _mask_decoder(p: _OnnxParams) -> dict[str, np.ndarray]:
+    """MaskDecoder's own weights: the IoU and mask tokens, output_upscaling (ConvTranspose,
+    LayerNorm2d, GELU, ConvTranspose), the IoU head and the 4 hypernetwork MLPs."""
+    up = "/output_upscaling/output_upscaling"
+    w = {"output_tokens": p.param("/Expand_1").reshape(N_OUT, C),
+         "up0.w": p.param(f"{up}.0/ConvTranspose", 1), "up0.b": p.param(f"{up}.0/ConvTranspose", 2),
+         "up1.g": p.param(f"{up}.1/Mul").reshape(-1), "up1.b": p.param(f"{up}.1/Add_1").reshape(-1),
+         "up1.eps": p.param(f"{up}.1/Add").reshape(()),
+         "up3.w": p.param(f"{up}.3/ConvTranspose", 1), "up3.b": p.param(f"{up}.3/ConvTranspose", 2)}
+    heads = [("iou", 0, "/iou_prediction_head")] + [("hyper", i, f"/output_hypernetworks_mlps.{i}") for i in range(4)]
+    for name, i, scope in heads:
+        for j in range(3):
+            gemm = f"{scope}/layers.{j}/Gemm"
+            wt = p.param(gemm, 1)
+            w[f"{name}.{i}.{j}.w"] = wt.T if p.attr(gemm, "transB") else wt   # stored (in, out)
+            w[f"{name}.{i}.{j}.b"] = p.param(gemm, 2)
     return w
 
 
