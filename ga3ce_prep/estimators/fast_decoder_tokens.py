@@ -47,9 +47,8 @@ class _TokenGraph(DecoderGraph):
 
     def self_attn(self, q_in: str, v_in: str, key: str) -> str:
         """segment-anything's Attention at full width (8 heads of 32): q and k from q_in, v from v_in."""
-        w = self.w
-        q = self.split_heads(self.linear(q_in, w[key + ".q_proj.w"] / np.sqrt(32.0), w[key + ".q_proj.b"] / np.sqrt(32.0)),
-                             [0, 2, 1, 3], 32)
+        w, scale = self.w, np.sqrt(32.0)
+        q = self.split_heads(self.linear(q_in, w[key + ".q_proj.w"] / scale, w[key + ".q_proj.b"] / scale), [0, 2, 1, 3], 32)
         k = self.split_heads(self.linear_w(q_in, key + ".k_proj"), [0, 2, 3, 1], 32)
         v = self.split_heads(self.linear_w(v_in, key + ".v_proj"), [0, 2, 1, 3], 32)
         o = self.mm(self.softmax(self.mm(q, k)), v)                                    # (B, H, T, 32)
@@ -85,7 +84,8 @@ class _TokenGraph(DecoderGraph):
 
     def inv_std(self, ssq: str) -> str:
         """(B, P, 1) sums of squares of centred rows -> 1 / sqrt(ssq / C + eps)."""
-        return self.op("Reciprocal", self.op("Sqrt", self.add(self.div(ssq, self.const(float(C))), self.const(self.eps))))
+        var = self.div(ssq, self.const(float(C)))
+        return self.op("Reciprocal", self.op("Sqrt", self.add(var, self.const(self.eps))))
 
     def shape_ht(self, prefix: list[int]) -> str:
         """The int64 shape prefix + [H*T]."""
@@ -216,13 +216,13 @@ def _two_way_layer1(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1) ->
     # Self attention block
     queries = g.ln(g.add(queries, g.self_attn(g.add(queries, tokens), queries, "layers.1.self_attn")),
                    "layers.1.norm1")
-    # Cross attention block, tokens attending to keys1: keys1 @ Wk + bk = r1 * (SK1 + a0c @ rk1) + k1_const
+    # Cross attention block, tokens attending to keys1: (keys1 + pe) @ Wk + bk = r1 * (SK1 + a0c @ rk1) + k1_const
     T2I = "layers.1.cross_attn_token_to_image"
     q1 = g.q_heads(g.add(queries, tokens), T2I + ".q_proj")                             # (B, H, T, D)
     rk1 = g.split_heads(g.mm(keys1.m0, g.const(g1w * w[T2I + ".k_proj.w"])), [0, 2, 3, 1])   # (B, H, D, HT)
     k1_const = (d.pe + w["layers.0.norm4.b"][None]) @ w[T2I + ".k_proj.w"] + w[T2I + ".k_proj.b"]   # (P, 128)
     p1 = g.softmax(g.factored_logits(q1, keys1.r1, img["SK1T"], rk1, keys1.a0cT, k1_const))  # (B, H, T, P)
-    # values likewise: p1 @ (keys1 @ Wv + bv) = p1r @ SV1 + (p1r @ a0c) @ rv1 + v1_const
+    # and values: p1 @ (keys1 @ Wv + bv) = p1r @ SV1 + (p1r @ a0c) @ rv1 + v1_const
     p1r = g.mul(p1, g.r_row(keys1.r1))
     rv1 = g.split_heads(g.mm(keys1.m0, g.const(g1w * w[T2I + ".v_proj.w"])), [0, 2, 1, 3])   # (B, H, HT, D)
     p1_a0 = g.attention_through(p1r, keys1.a0c)                                        # (B, H, T, HT)
@@ -231,7 +231,7 @@ def _two_way_layer1(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1) ->
     queries = g.ln(g.add(queries, g.linear_w(g.merge_heads(o1), T2I + ".out_proj")), "layers.1.norm2")
     # MLP block
     queries = g.ln(g.add(queries, g.mlp(queries, "layers.1.mlp")), "layers.1.norm3")
-    # Cross attention block, keys1 attending to tokens: its queries keys1 @ Wq + bq = r1 * (SQ1 + a0c @ rq1) + q1_const
+    # Cross attention block, keys1 attending to tokens: (keys1 + pe) @ Wq + bq = r1 * (SQ1 + a0c @ rq1) + q1_const
     I2T = "layers.1.cross_attn_image_to_token"
     kt1 = g.q_heads(g.add(queries, tokens), I2T + ".k_proj")                           # (B, H, T, D)
     vt1 = g.linear_w(queries, I2T + ".v_proj")                                         # (B, T, 128)
@@ -273,7 +273,7 @@ def _final_attn_token_to_image(g: _TokenGraph, queries: str, tokens: str, keys1:
     w, d, img = g.w, g.d, g.img
     F = "final"
     qf = g.q_heads(g.slice(g.add(queries, tokens), [0], [N_OUT], [1]), F + ".q_proj")   # (B, H, 5, D)
-    # keys2 @ Wk + bk = r2 * (r1 * (SKf + a0c @ rkf0) + a1c @ rkf1 + kf_beta) + kf_const
+    # (keys2 + pe) @ Wk + bk = r2 * (r1 * (SKf + a0c @ rkf0) + a1c @ rkf1 + kf_beta) + kf_const
     g2wk = d.g2[:, None] * w[F + ".k_proj.w"]
     g2wv = d.g2[:, None] * w[F + ".v_proj.w"]
     rkf0 = g.split_heads(g.mm(keys2.n0, g.const(g2wk)), [0, 2, 3, 1])                  # (B, H, D, HT)
