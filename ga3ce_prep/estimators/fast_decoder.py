@@ -42,8 +42,9 @@ MASK_GRAPH_DISABLED_OPTIMIZERS = ("BiasGeluFusion",)
 
 
 class FastDecoder:
-    """The restructured decoder on ONNX Runtime: `set_image` once per image, then `predict_iou` for a
-    batch of prompts and `low_res_masks` for the prompts whose candidates are wanted.
+    """The restructured decoder on ONNX Runtime, a `mobilesam.MaskDecoder`: `set_image` once per image,
+    then `predict_iou` for a batch of prompts and `low_res_masks` / `candidate_masks` for the prompts
+    whose candidates are wanted.
 
     decoder_path: the official decoder ONNX (its weights are read from it).
     providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).

@@ -48,14 +48,23 @@ class _TokenGraph(DecoderGraph):
     def self_attn(self, q_in: str, v_in: str, key: str) -> str:
         """segment-anything's Attention at full width (8 heads of 32): q and k from q_in, v from v_in."""
         w, scale = self.w, np.sqrt(32.0)
-        q = self.split_heads(self.linear(q_in, w[key + ".q_proj.w"] / scale, w[key + ".q_proj.b"] / scale), [0, 2, 1, 3], 32)
+        q = self.linear(q_in, w[key + ".q_proj.w"] / scale, w[key + ".q_proj.b"] / scale)
+        q = self.split_heads(q, [0, 2, 1, 3], 32)
         k = self.split_heads(self.linear_w(q_in, key + ".k_proj"), [0, 2, 3, 1], 32)
         v = self.split_heads(self.linear_w(v_in, key + ".v_proj"), [0, 2, 1, 3], 32)
         o = self.mm(self.softmax(self.mm(q, k)), v)                                    # (B, H, T, 32)
         return self.linear_w(self.merge_heads(o, 32), key + ".out_proj")
 
-    def mlp(self, x: str, key: str) -> str:
-        return self.linear_w(self.relu(self.linear_w(x, key + ".lin1")), key + ".lin2")
+    def mlp_block(self, queries: str, layer: str) -> str:
+        """The two-way block's MLP block: LN(queries + lin2(relu(lin1(queries))))."""
+        h = self.linear_w(self.relu(self.linear_w(queries, layer + ".mlp.lin1")), layer + ".mlp.lin2")
+        return self.ln(self.add(queries, h), layer + ".norm3")
+
+    def token_keys_values(self, queries: str, tokens: str, layer: str) -> tuple[str, str]:
+        """The tokens' side of the layer's image-to-token attention: keys (B, H, T, D), pre-scaled by
+        1/sqrt(D), and values (B, T, 128)."""
+        key = layer + ".cross_attn_image_to_token"
+        return self.q_heads(self.add(queries, tokens), key + ".k_proj"), self.linear_w(queries, key + ".v_proj")
 
     def softmax_tokens(self, x: str) -> str:
         """(B, H, T, P) logits -> softmax over the tokens (axis 2), vectorised along P."""
@@ -192,11 +201,9 @@ def _two_way_layer0(g: _TokenGraph, tokens: str) -> tuple[str, _Keys1]:
     o0 = g.merge_heads(g.mm(p0, img["V0"]))                                            # (B, T, 128)
     queries = g.ln(g.add(queries, g.linear_w(o0, T2I + ".out_proj")), "layers.0.norm2")
     # MLP block
-    queries = g.ln(g.add(queries, g.mlp(queries, "layers.0.mlp")), "layers.0.norm3")
+    queries = g.mlp_block(queries, "layers.0")
     # Cross attention block, image embedding attending to tokens: keys1, factored
-    I2T = "layers.0.cross_attn_image_to_token"
-    kt0 = g.q_heads(g.add(queries, tokens), I2T + ".k_proj")                           # (B, H, T, D)
-    vt0 = g.linear_w(queries, I2T + ".v_proj")                                         # (B, T, 128)
+    kt0, vt0 = g.token_keys_values(queries, tokens, "layers.0")                        # (B, H, T, D), (B, T, 128)
     a0 = g.softmax_tokens(g.mm(kt0, img["Qi0T"]))                                      # (B, H, T, P)
     a0c, a0cT = g.cat_heads(a0), g.cat_heads_T(a0)
     vt0h = g.split_heads(vt0, [0, 2, 1, 3])                                            # (B, H, T, D)
@@ -230,11 +237,10 @@ def _two_way_layer1(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1) ->
     o1 = g.add(g.add(g.mm(p1r, img["SV1"]), g.mm(p1_a0, rv1)), g.const(v1_const.reshape(H, 1, D)))
     queries = g.ln(g.add(queries, g.linear_w(g.merge_heads(o1), T2I + ".out_proj")), "layers.1.norm2")
     # MLP block
-    queries = g.ln(g.add(queries, g.mlp(queries, "layers.1.mlp")), "layers.1.norm3")
+    queries = g.mlp_block(queries, "layers.1")
     # Cross attention block, keys1 attending to tokens: (keys1 + pe) @ Wq + bq = r1 * (SQ1 + a0c @ rq1) + q1_const
     I2T = "layers.1.cross_attn_image_to_token"
-    kt1 = g.q_heads(g.add(queries, tokens), I2T + ".k_proj")                           # (B, H, T, D)
-    vt1 = g.linear_w(queries, I2T + ".v_proj")                                         # (B, T, 128)
+    kt1, vt1 = g.token_keys_values(queries, tokens, "layers.1")                        # (B, H, T, D), (B, T, 128)
     rq1 = g.split_heads(g.mm(keys1.m0, g.const(g1w * w[I2T + ".q_proj.w"])), [0, 2, 3, 1])   # (B, H, D, HT)
     q1_const = (d.pe + w["layers.0.norm4.b"][None]) @ w[I2T + ".q_proj.w"] + w[I2T + ".q_proj.b"]   # (P, 128)
     a1 = g.softmax_tokens(g.factored_logits(kt1, keys1.r1, img["SQ1T"], rq1, keys1.a0cT, q1_const))
