@@ -63,12 +63,11 @@ def main() -> None:
     emb = probe.encoder.embed(rgb)
     probe.decoder.set_image(emb)
     from ga3ce_prep.estimators.amg import build_point_grid
-    from ga3ce_prep.estimators.mobilesam import transform_coords
+    from ga3ce_prep.estimators.mobilesam import single_point_prompts, transform_coords
     pts = transform_coords(build_point_grid(args.points_per_side) * [640, 480], (480, 640))
     ious = []
     for b0 in range(0, len(pts), 64):
-        p = pts[b0:b0 + 64]
-        iou, _ = probe.decoder.predict_iou(np.stack([p, np.zeros_like(p)], 1), np.tile([1.0, -1.0], (len(p), 1)))
+        iou, _ = probe.decoder.predict_iou(*single_point_prompts(pts[b0:b0 + 64]))
         ious.append(iou[:, 1:4].reshape(-1))
     ious = np.sort(np.concatenate(ious).astype(np.float32))
     results = []

@@ -94,3 +94,23 @@ def test_options_validate():
     with pytest.raises(ConfigError, match="box_nms_thresh"):
         amg.AmgOptions(box_nms_thresh=1.5)
     assert amg.AmgOptions().to_dict()["pred_iou_thresh"] == 0.88
+
+
+def test_mask_records_filter_and_cat_keep_rows_aligned():
+    def records(iou, crop):
+        n = len(iou)
+        return amg.MaskRecords(iou=np.array(iou, np.float32), stability=np.arange(n, dtype=np.float32) + 10 * crop,
+                               box=np.arange(4 * n).reshape(n, 4) + 100 * crop, point=np.zeros((n, 2)),
+                               low_res=np.zeros((n, amg.LOW_RES, amg.LOW_RES), np.float32),
+                               crop_index=np.full(n, crop))
+    both = records([0.9, 0.8, 0.7], 0).cat(records([0.6], 1))
+    assert both.crop_index.tolist() == [0, 0, 0, 1]
+    picked = both.filter(np.array([3, 0]))                    # indices, in the order given
+    np.testing.assert_array_equal(picked.iou, np.array([0.6, 0.9], np.float32))
+    assert picked.box[:, 0].tolist() == [100, 0]
+    assert picked.stability.tolist() == [10, 0]
+    kept = both.filter(both.iou > 0.75)
+    assert kept.stability.tolist() == [0, 1]
+    assert kept.low_res.shape == (2, 256, 256)
+    assert len(amg.MaskRecords.empty().cat(both)) == 4
+    assert len(both.filter(slice(0, 0))) == 0

@@ -16,6 +16,7 @@ from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, O
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
 
+CPU = ["CPUExecutionProvider"]   # the runners' providers and threads: (CPU, 1)
 
 
 def label_image(h=480, w=640):
@@ -46,16 +47,16 @@ def files(tmp_path_factory):
 
 def test_encoder_contract_error_names_input_and_shapes(files):
     with pytest.raises(ModelFileError, match=r"input 'image' expected shape \[1, 3, 1024, 1024\], found \[1, 3, 512, 512\]"):
-        ImageEncoder(files["enc_bad"])
+        ImageEncoder(files["enc_bad"], CPU, 1)
     with pytest.raises(ModelFileError, match="not found"):
-        ImageEncoder(files["enc"].with_name("missing.onnx"))
+        ImageEncoder(files["enc"].with_name("missing.onnx"), CPU, 1)
 
 
 def test_decoder_contract_errors(files):
     with pytest.raises(ModelFileError, match="no input named 'orig_im_size'"):
-        OfficialDecoder(files["dec_no_size"])
+        OfficialDecoder(files["dec_no_size"], CPU, 1)
     with pytest.raises(ModelFileError, match=r"input 'mask_input' expected shape \[1, 1, 256, 256\], found \[1, 1, 128, 128\]"):
-        OfficialDecoder(files["dec_bad_mask"])
+        OfficialDecoder(files["dec_bad_mask"], CPU, 1)
 
 
 def test_providers_refuse_missing_gpu_build():
@@ -78,9 +79,9 @@ def test_preprocessing_by_hand():
 
 def test_encoder_forms_agree_and_pool_the_normalised_image(files):
     rgb = np.random.default_rng(0).integers(0, 256, (300, 400, 3)).astype(np.uint8)
-    a = ImageEncoder(files["enc"]).embed(rgb)
-    b = ImageEncoder(files["enc_pre"]).embed(rgb)
-    assert ImageEncoder(files["enc_pre"]).preprocessed_input
+    a = ImageEncoder(files["enc"], CPU, 1).embed(rgb)
+    b = ImageEncoder(files["enc_pre"], CPU, 1).embed(rgb)
+    assert ImageEncoder(files["enc_pre"], CPU, 1).preprocessed_input
     np.testing.assert_allclose(a, b, atol=1e-5)
     x = normalise_and_pad(resize_longest_side(rgb))
     np.testing.assert_allclose(a[0, 5], x[0, 2].reshape(64, 16, 64, 16).mean(axis=(1, 3)), atol=1e-5)  # channel 5 = B
@@ -94,7 +95,7 @@ def test_coordinates_through_the_resize_transform():
 
 @pytest.mark.parametrize("dec", ["dec", "dec_batch"])
 def test_official_decoder_loops_or_batches(files, dec):
-    d = OfficialDecoder(files[dec])
+    d = OfficialDecoder(files[dec], CPU, 1)
     assert d.batched == (dec == "dec_batch")
     emb = np.zeros((1, 256, 64, 64), np.float32)
     pts = transform_coords(np.array([[100.0, 100.0], [450.0, 330.0], [620.0, 460.0]]), (480, 640))

@@ -10,7 +10,7 @@ from onnx import numpy_helper
 
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, OfficialDecoder, SegmenterOptions
+from ga3ce_prep.estimators.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
 from ga3ce_prep.testing.scripted import drawn_frame
 
 MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
@@ -18,6 +18,7 @@ MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
 ENC, DEC = MODELS / "mobile_sam_encoder.onnx", MODELS / "mobile_sam_decoder.onnx"
 if not (ENC.is_file() and DEC.is_file()):  # CI has ../shared beside the clone; say so instead of skipping quietly
     pytest.fail(f"MobileSAM models not found in {MODELS}; set GA3CE_MOBILESAM_DIR", pytrace=False)
+CPU = ["CPUExecutionProvider"]   # the runners' providers and threads: (CPU, 1)
 
 
 def perturbed_decoder(path: Path, seed: int = 1) -> onnx.ModelProto:
@@ -59,7 +60,7 @@ def embedding():
     from ga3ce_prep.estimators.mobilesam import ImageEncoder
     rng = np.random.default_rng(3)
     rgb = rng.integers(0, 256, (480, 640, 3)).astype(np.uint8)
-    return ImageEncoder(ENC).embed(rgb)
+    return ImageEncoder(ENC, CPU, 1).embed(rgb)
 
 
 @pytest.mark.parametrize("perturb", [False, True])
@@ -68,7 +69,7 @@ def test_fast_decoder_equals_official_decoder(embedding, tmp_path, perturb):
     if perturb:
         path = tmp_path / "decoder_ln.onnx"
         onnx.save(perturbed_decoder(DEC), path)
-    official, fast = OfficialDecoder(path), FastDecoder(path)
+    official, fast = OfficialDecoder(path, CPU, 1), FastDecoder(path, CPU, 1)
     fast.set_image(embedding)
     for prompts in prompt_grid():
         coords = np.array([p[0] for p in prompts], np.float32)
@@ -113,11 +114,13 @@ def test_mask_graph_keeps_gelu_apart_from_its_bias(tmp_path):
     (if ORT renames it, this fails and the name must follow)."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder import (MASK_GRAPH_DISABLED_OPTIMIZERS, build_mask_graph,
-                                                    decoder_weights)
+    from ga3ce_prep.estimators.fast_decoder import MASK_GRAPH_DISABLED_OPTIMIZERS
+    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
     from ga3ce_prep.estimators.onnx_runtime import session_options
 
-    graph = build_mask_graph(decoder_weights(DEC)).SerializeToString()
+    w = decoder_weights(DEC)
+    graph = build_mask_graph(w, Derived.from_weights(w)).SerializeToString()
 
     def optimized_ops(disabled):
         so = session_options(1)
@@ -131,4 +134,9 @@ def test_mask_graph_keeps_gelu_apart_from_its_bias(tmp_path):
 
 
 def test_fast_decoder_batch_size_follows_the_provider():
-    assert FastDecoder(DEC).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
+    assert FastDecoder(DEC, CPU, 1).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
+
+
+def test_both_decoders_are_mask_decoders():
+    assert isinstance(FastDecoder(DEC, CPU, 1), MaskDecoder)
+    assert isinstance(OfficialDecoder(DEC, CPU, 1, batch_size=64), MaskDecoder)

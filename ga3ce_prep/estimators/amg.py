@@ -5,12 +5,13 @@ MobileSAM): per crop, a grid of single-point prompts; keep the multimask outputs
 exceeds `pred_iou_thresh`, whose stability score (IoU of the mask thresholded at +offset and at
 -offset) reaches `stability_score_thresh`, and whose box is not cut by an inner crop edge; greedy box
 NMS within the crop, then across crops; optionally remove small holes and islands. Boxes are XYXY in
-pixels with inclusive maxima (x2 = last column of the mask), as the reference computes them.
+pixels with inclusive maxima (x2 = last column of the mask), as the reference computes them. The
+candidates flow through these steps as one columnar `MaskRecords` (the reference's `MaskData`).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import cv2
 import numpy as np
@@ -48,6 +49,40 @@ class AmgOptions:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+LOW_RES = 256  # side of the decoder's low-resolution mask logits
+
+
+@dataclass(frozen=True)
+class MaskRecords:
+    """Candidate masks, one row each: the reference's `MaskData` with typed columns. Each filter is
+    `records.filter(keep)`; batches and crops are gathered with `cat`."""
+
+    iou: np.ndarray  # (n,) float32 predicted IoU
+    stability: np.ndarray  # (n,) float32 stability score
+    box: np.ndarray  # (n, 4) int64 XYXY, inclusive maxima
+    point: np.ndarray  # (n, 2) float64 prompt pixel (x, y)
+    low_res: np.ndarray  # (n, 256, 256) float32 low-resolution logits
+    crop_index: np.ndarray  # (n,) int64 crop the mask was decoded in
+
+    @classmethod
+    def empty(cls) -> MaskRecords:
+        return cls(iou=np.zeros(0, np.float32), stability=np.zeros(0, np.float32), box=np.zeros((0, 4), np.int64),
+                   point=np.zeros((0, 2)), low_res=np.zeros((0, LOW_RES, LOW_RES), np.float32),
+                   crop_index=np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.iou)
+
+    def filter(self, keep: np.ndarray | slice) -> MaskRecords:
+        """The rows `keep`: a bool mask, indices (in the order given) or a slice."""
+        return MaskRecords(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
+
+    def cat(self, *others: MaskRecords) -> MaskRecords:
+        """These rows, then those of each of `others`."""
+        parts = (self, *others)
+        return MaskRecords(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(self)})
 
 
 def build_point_grid(n_per_side: int) -> np.ndarray:

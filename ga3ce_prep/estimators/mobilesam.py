@@ -10,18 +10,22 @@ The user brings two ONNX files (docs/models.md says how to export them from `mob
   outputs masks, iou_predictions, low_res_masks).
 
 `MobileSamSegmenter.segment` runs segment-anything's automatic mask generator (amg.py) with the
-restructured decoder of fast_decoder.py (`decoder="fast"`, default) or the official graph
-(`decoder="official"`, one call per prompt unless its batch axis is dynamic).
+restructured decoder of fast_decoder.py (`decoder_mode="fast"`, default) or the official graph
+(`decoder_mode="official"`, one call per prompt unless its batch axis is dynamic); both are a
+`MaskDecoder`.
 """
 from __future__ import annotations
 
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
-from typing import Literal
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, Iterator, Literal, Protocol, Sequence, runtime_checkable
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -87,9 +91,13 @@ def _check_rgb(rgb: np.ndarray) -> np.ndarray:
 # Runners
 # ---------------------------------------------------------------------------------------------
 class ImageEncoder:
-    """The image encoder ONNX, in either form (see module docstring)."""
+    """The image encoder ONNX, in either form (see module docstring).
 
-    def __init__(self, path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
+    path: the encoder ONNX file.
+    providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
+    threads: intra-op threads of the session."""
+
+    def __init__(self, path: str | Path, providers: Sequence[str], threads: int):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM encoder")
         ins = self.session.get_inputs()
@@ -120,15 +128,22 @@ class OfficialDecoder:
     """The official decoder ONNX (prompt encoder + mask decoder + postprocessing).
 
     Batches prompts when the file's batch axis is dynamic, loops one prompt per call when it is
-    fixed (the official export). Also usable through the fast decoder's interface
-    (set_image / predict_iou / low_res_masks), keeping each batch's low-res masks."""
+    fixed (the official export). Also a `MaskDecoder` for the generator, keeping each batch's
+    low-res masks as its state.
 
-    def __init__(self, path: str | Path, providers=("CPUExecutionProvider",), threads: int = 2):
+    path: the decoder ONNX file.
+    providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
+    threads: intra-op threads of the session.
+    batch_size: prompts per `predict_iou` call when the generator uses it (the generator passes its
+      points_per_batch)."""
+
+    def __init__(self, path: str | Path, providers: Sequence[str], threads: int, batch_size: int = 1):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM decoder")
         check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
         self.batched = input_dims(self.session, "point_coords")[0] is None
         self.max_batch = 8
+        self.batch_size = batch_size
         self._emb: np.ndarray | None = None
 
     def __call__(self, image_embeddings: np.ndarray, point_coords: np.ndarray, point_labels: np.ndarray,
@@ -147,11 +162,12 @@ class OfficialDecoder:
                  for i in range(0, len(coords), step)]
         return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
 
-    # fast-decoder interface -----------------------------------------------------------------
+    # MaskDecoder ------------------------------------------------------------------------------
     def set_image(self, image_embeddings: np.ndarray) -> None:
         self._emb = image_embeddings
 
-    def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray):
+    def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(iou_predictions (B, 4), low_res_masks (B, 4, 256, 256) as the state)."""
         iou, low = self(self._emb, point_coords, point_labels, (IMG_SIZE, IMG_SIZE),
                         outputs=("iou_predictions", "low_res_masks"))
         return iou, low
@@ -163,6 +179,27 @@ class OfficialDecoder:
         return state[np.asarray(prompt), np.asarray(token)]
 
 
+@runtime_checkable
+class MaskDecoder(Protocol):
+    """What the generator needs of a decoder (`FastDecoder`, `OfficialDecoder`): IoU predictions for a
+    batch of prompts first, then the low-res masks of the candidates that pass the IoU filter."""
+
+    batch_size: int  # prompts per predict_iou call
+
+    def set_image(self, image_embeddings: np.ndarray) -> None:
+        """image_embeddings (1, 256, 64, 64) of the image the next prompts point into."""
+
+    def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, Any]:
+        """point_coords (B, N, 2) in the 1024 frame, point_labels (B, N) -> (iou_predictions (B, 4),
+        the batch's state for the mask calls)."""
+
+    def low_res_masks(self, state: Any, index: np.ndarray) -> np.ndarray:
+        """(K, 4, 256, 256) logits of the prompts `index` of the batch."""
+
+    def candidate_masks(self, state: Any, prompt: np.ndarray, token: np.ndarray) -> np.ndarray:
+        """(n, 256, 256) logits of candidates (prompt index in the batch, mask token 0..3)."""
+
+
 # ---------------------------------------------------------------------------------------------
 # Segment everything
 # ---------------------------------------------------------------------------------------------
@@ -170,11 +207,16 @@ class OfficialDecoder:
 class Segmentation:
     """Masks of one image, in the reference generator's output order (NMS order: score-descending).
 
-    masks (M, h, w) bool at the requested output resolution; scores (M,) float32 predicted IoU;
-    areas (M,) int64 pixels of the returned masks; stability (M,) float32; boxes (M, 4) int64 XYXY at
-    the image resolution (inclusive maxima); points (M, 2) float64 prompt pixel (x, y);
-    crop_boxes (M, 4) XYXY; timings seconds per step; n_candidates the masks decoded (they passed the
-    IoU filter), n_mask_prompts the prompts whose masks were decoded."""
+    masks: (M, h, w) bool at the requested output resolution.
+    scores: (M,) float32 predicted IoU.
+    areas: (M,) int64 pixels of the returned masks.
+    stability: (M,) float32 stability scores.
+    boxes: (M, 4) int64 XYXY at the image resolution (inclusive maxima).
+    points: (M, 2) float64 prompt pixel (x, y).
+    crop_boxes: (M, 4) XYXY of each mask's crop.
+    timings: seconds per step (summed over the decoding threads).
+    n_candidates: the masks decoded (they passed the IoU filter).
+    n_mask_prompts: the prompts whose masks were decoded."""
 
     masks: np.ndarray
     scores: np.ndarray
@@ -188,20 +230,76 @@ class Segmentation:
     n_mask_prompts: int = 0
 
 
-class _Timer:
+class StepTimer:
+    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`."""
+
     def __init__(self):
-        self.t = defaultdict(float)
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._lock = threading.Lock()
 
-    def add(self, key: str, t0: float) -> float:
-        now = time.perf_counter()
-        self.t[key] += now - t0
-        return now
+    @contextmanager
+    def __call__(self, step: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t0
+            with self._lock:
+                self.seconds[step] += dt
 
 
-def _crop_output_box(crop: list[int], img_hw: tuple[int, int], out_hw: tuple[int, int]) -> list[int]:
-    """A crop box (image pixels) at the output resolution."""
-    sy, sx = out_hw[0] / img_hw[0], out_hw[1] / img_hw[1]
-    return [int(round(crop[0] * sx)), int(round(crop[1] * sy)), int(round(crop[2] * sx)), int(round(crop[3] * sy))]
+@dataclass(frozen=True)
+class _Counts:
+    """What the decoder was asked for: candidates (masks decoded, they passed the IoU filter) and
+    mask_prompts (prompts whose masks were decoded)."""
+
+    candidates: int = 0
+    mask_prompts: int = 0
+
+    def __add__(self, other: _Counts) -> _Counts:
+        return _Counts(self.candidates + other.candidates, self.mask_prompts + other.mask_prompts)
+
+
+@dataclass(frozen=True)
+class _Crop:
+    """One crop of the generator (amg.crop_boxes): its index, box XYXY in image pixels and layer."""
+
+    index: int
+    box: tuple[int, int, int, int]
+    layer: int
+    image_hw: tuple[int, int]
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return self.box[3] - self.box[1], self.box[2] - self.box[0]
+
+    def output_box(self, out_hw: tuple[int, int]) -> tuple[int, int, int, int]:
+        """The box XYXY at the output resolution (the whole output for the full-image crop)."""
+        if self.hw == self.image_hw:
+            return 0, 0, out_hw[1], out_hw[0]
+        sy, sx = out_hw[0] / self.image_hw[0], out_hw[1] / self.image_hw[1]
+        x0, y0, x1, y1 = self.box
+        return int(round(x0 * sx)), int(round(y0 * sy)), int(round(x1 * sx)), int(round(y1 * sy))
+
+    def mask(self, low_res: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+        """(256, 256) logits of a mask decoded in this crop -> (out_h, out_w) bool: the decoder's
+        postprocessing straight into the crop's box at the output resolution, thresholded at 0."""
+        x0, y0, x1, y1 = self.output_box(out_hw)
+        out = np.zeros(out_hw, bool)
+        out[y0:y1, x0:x1] = amg.upscale_logits(low_res[None], self.hw, (y1 - y0, x1 - x0))[0] > 0.0
+        return out
+
+
+def single_point_prompts(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 2) points in the 1024 frame -> point_coords (B, 2, 2) and point_labels (B, 2): each point
+    followed by the padding point, as the reference prompts the decoder."""
+    return np.stack([coords, np.zeros_like(coords)], axis=1), np.tile(np.array([1.0, -1.0]), (len(coords), 1))
+
+
+def _resize_nearest(mask: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+    if mask.shape == out_hw:
+        return mask
+    return cv2.resize(mask.astype(np.uint8), (out_hw[1], out_hw[0]), interpolation=cv2.INTER_NEAREST) > 0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -215,9 +313,11 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
 class MobileSamSegmenter:
     """segment-anything's automatic mask generator with MobileSAM's ONNX files.
 
-    encoder, decoder: the ONNX paths. options: SegmenterOptions (generator, runtime, decoder mode).
+    encoder: the image encoder ONNX path.
+    decoder: the prompt encoder + mask decoder ONNX path.
+    options: SegmenterOptions (generator, runtime, decoder mode).
     verify: on load, check the fast decoder against the official graph on a few prompts and refuse
-    a mismatch (catches an export whose weights were read wrongly)."""
+      a mismatch (catches an export whose weights were read wrongly)."""
 
     def __init__(self, encoder: str | Path, decoder: str | Path, options: SegmenterOptions = SegmenterOptions(),
                  verify: bool = True):
@@ -228,13 +328,12 @@ class MobileSamSegmenter:
         self.providers = resolve_providers(options.providers)
         self.encoder_path, self.decoder_path = Path(encoder), Path(decoder)
         self.encoder = ImageEncoder(encoder, self.providers, threads)
-        self.official = OfficialDecoder(decoder, self.providers, threads)
+        self.official = OfficialDecoder(decoder, self.providers, threads, batch_size=options.points_per_batch)
         self.decoder_mode = decoder_mode
         self._lock = threading.Lock()   # the decoders keep the current image: one segment() at a time
-        self._pool = None
+        self._pool: ThreadPoolExecutor | None = None
+        self.decoder: MaskDecoder = self.official
         if decoder_mode == "fast":
-            from concurrent.futures import ThreadPoolExecutor
-
             try:
                 from .fast_decoder import FastDecoder
             except ImportError as e:   # the fast decoder reads and writes ONNX graphs with the onnx package
@@ -249,8 +348,6 @@ class MobileSamSegmenter:
                 self._pool = ThreadPoolExecutor(threads, thread_name_prefix="mobilesam")
             if verify:
                 self.verify()
-        else:
-            self.decoder = self.official
 
     def provenance(self) -> dict:
         """Backend parameters and model hashes for the store's provenance."""
@@ -263,8 +360,7 @@ class MobileSamSegmenter:
         abs difference of IoU predictions and low-res logits, raises ModelFileError above atol."""
         rng = np.random.default_rng(0)
         emb = rng.standard_normal(EMBEDDING_SHAPE).astype(np.float32)
-        coords = np.stack([rng.uniform(0, IMG_SIZE, (n_prompts, 2)), np.zeros((n_prompts, 2))], axis=1)
-        labels = np.tile(np.array([1.0, -1.0]), (n_prompts, 1))
+        coords, labels = single_point_prompts(rng.uniform(0, IMG_SIZE, (n_prompts, 2)))
         ref_iou, ref_low = self.official(emb, coords, labels, (IMG_SIZE, IMG_SIZE),
                                          outputs=("iou_predictions", "low_res_masks"))
         self.decoder.set_image(emb)
@@ -286,165 +382,132 @@ class MobileSamSegmenter:
         with self._lock:
             return self._segment(_check_rgb(rgb), out_size)
 
-    def _segment(self, rgb: np.ndarray, out_size) -> Segmentation:
+    def _segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None) -> Segmentation:
+        """The generator's steps over the crops, as the reference's `_generate_masks` and
+        `postprocess_small_regions`."""
         opt = self.options
         img_hw = rgb.shape[:2]
         out_hw = tuple(out_size) if out_size is not None else img_hw
-        timer = _Timer()
-        t0 = time.perf_counter()
-        boxes_c, layers = amg.crop_boxes(img_hw, opt.crop_n_layers, opt.crop_overlap_ratio)
+        timer = StepTimer()
+        boxes, layers = amg.crop_boxes(img_hw, opt.crop_n_layers, opt.crop_overlap_ratio)
+        crops = [_Crop(i, tuple(box), layer, img_hw) for i, (box, layer) in enumerate(zip(boxes, layers))]
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
-        kept: list[dict] = []
-        n_candidates = 0
-        self._n_mask_prompts = 0
-        for ci, (crop, layer) in enumerate(zip(boxes_c, layers)):
-            res, n = self._process_crop(rgb, crop, grids[layer], img_hw, timer)
-            n_candidates += n
-            for r in res:
-                r["crop_index"] = ci
-            kept += res
-        t0 = time.perf_counter()
-        if len(boxes_c) > 1 and kept:
-            areas = np.array([amg.box_area(np.array([boxes_c[r["crop_index"]]], np.float64))[0] for r in kept])
-            order = amg.box_nms(np.array([r["box"] for r in kept]), 1.0 / areas, opt.crop_nms_thresh)
-            kept = [kept[i] for i in order]
-        t0 = timer.add("nms", t0)
+        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer) for crop in crops]
+        data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
+        counts = sum((n for _, n in parts), _Counts())
+        crop_boxes = np.array(boxes, np.int64)                                      # (crops, 4)
+        # Remove duplicate masks between crops (the smaller crop wins)
+        if len(crops) > 1:
+            with timer("nms"):
+                scores = 1.0 / amg.box_area(crop_boxes[data.crop_index].astype(np.float64))
+                data = data.filter(amg.box_nms(data.box, scores, opt.crop_nms_thresh))
+        # Remove small disconnected regions and holes
         changed: dict[int, np.ndarray] = {}
-        if opt.min_mask_region_area > 0 and kept:
-            kept, changed = self._small_regions(kept, boxes_c, img_hw, timer)
-        t0 = time.perf_counter()
-        masks = np.zeros((len(kept), *out_hw), bool)
-        for i, r in enumerate(kept):
-            if i in changed:
-                m = changed[i]
-                if m.shape != out_hw:
-                    import cv2
-                    m = cv2.resize(m.astype(np.uint8), (out_hw[1], out_hw[0]), interpolation=cv2.INTER_NEAREST) > 0
-                masks[i] = m
-                continue
-            crop = boxes_c[r["crop_index"]]
-            crop_hw = (crop[3] - crop[1], crop[2] - crop[0])
-            ob = _crop_output_box(crop, img_hw, out_hw) if crop_hw != img_hw else [0, 0, out_hw[1], out_hw[0]]
-            region = amg.upscale_logits(r["low_res"][None], crop_hw, (ob[3] - ob[1], ob[2] - ob[0]))[0]
-            masks[i, ob[1]:ob[3], ob[0]:ob[2]] = region > 0.0
-        timer.add("output masks", t0)
-        n = len(kept)
-        return Segmentation(
-            masks=masks,
-            scores=np.array([r["iou"] for r in kept], np.float32).reshape(n),
-            areas=masks.sum(axis=(1, 2), dtype=np.int64),
-            stability=np.array([r["stability"] for r in kept], np.float32).reshape(n),
-            boxes=np.array([r["box"] for r in kept], np.int64).reshape(n, 4),
-            points=np.array([r["point"] for r in kept], np.float64).reshape(n, 2),
-            crop_boxes=np.array([boxes_c[r["crop_index"]] for r in kept], np.int64).reshape(n, 4),
-            timings=dict(timer.t), n_candidates=n_candidates, n_mask_prompts=self._n_mask_prompts)
+        if opt.min_mask_region_area > 0 and len(data):
+            with timer("small regions"):
+                data, changed = self._small_regions(data, crops)
+        # Masks at the output resolution
+        with timer("output masks"):
+            masks = np.zeros((len(data), *out_hw), bool)
+            for i, (low_res, ci) in enumerate(zip(data.low_res, data.crop_index)):
+                masks[i] = _resize_nearest(changed[i], out_hw) if i in changed else crops[ci].mask(low_res, out_hw)
+        return Segmentation(masks=masks, scores=data.iou, areas=masks.sum(axis=(1, 2), dtype=np.int64),
+                            stability=data.stability, boxes=data.box, points=data.point,
+                            crop_boxes=crop_boxes[data.crop_index], timings=dict(timer.seconds),
+                            n_candidates=counts.candidates, n_mask_prompts=counts.mask_prompts)
 
-    def _process_crop(self, rgb, crop, grid, img_hw, timer) -> tuple[list[dict], int]:
-        """One crop: encode, decode the grid in batches, filter; in-crop NMS. Boxes and points come
-        back in image coordinates; `low_res` keeps each kept mask's 256x256 logits."""
-        opt = self.options
-        x0, y0, x1, y1 = crop
-        crop_hw = (y1 - y0, x1 - x0)
-        t0 = time.perf_counter()
-        emb = self.encoder.embed(rgb[y0:y1, x0:x1])
-        t0 = timer.add("encoder", t0)
-        self.decoder.set_image(emb)
-        t0 = timer.add("decoder image", t0)
-        points = grid * np.array([crop_hw[1], crop_hw[0]], np.float64)       # crop pixels (x, y)
-        coords = transform_coords(points, crop_hw)
-        step = getattr(self.decoder, "batch_size", None) or opt.points_per_batch   # results do not depend on it
-        starts = range(0, len(points), step)
-        if self._pool is None:
-            parts = [self._decode_batch(coords[b0:b0 + step], points[b0:b0 + step], crop, crop_hw, img_hw)
-                     for b0 in starts]
-        else:   # batches in parallel (1-thread sessions), results in batch order
-            parts = list(self._pool.map(lambda b0: self._decode_batch(coords[b0:b0 + step], points[b0:b0 + step],
-                                                                      crop, crop_hw, img_hw), starts))
-        kept: list[dict] = []
-        n_candidates = 0
-        for res, n_cand, n_prompts, times in parts:
-            kept += res
-            n_candidates += n_cand
-            self._n_mask_prompts += n_prompts
-            for k, v in times.items():
-                timer.t[k] += v
-        t0 = time.perf_counter()
-        if kept:
-            order = amg.box_nms(np.array([r["box"] for r in kept]), np.array([r["iou"] for r in kept], np.float32),
-                                opt.box_nms_thresh)
-            kept = [kept[i] for i in order]
-            shift = np.array([x0, y0, x0, y0])
-            for r in kept:
-                r["box"] = r["box"] + shift
-                r["point"] = r["point"] + np.array([x0, y0])
-        timer.add("nms", t0)
-        return kept, n_candidates
+    def _process_crop(self, rgb: np.ndarray, crop: _Crop, grid: np.ndarray,
+                      timer: StepTimer) -> tuple[amg.MaskRecords, _Counts]:
+        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches, in-crop NMS. Boxes and points
+        come back in image coordinates."""
+        x0, y0, x1, y1 = crop.box
+        # Crop the image and calculate embeddings
+        with timer("encoder"):
+            emb = self.encoder.embed(rgb[y0:y1, x0:x1])
+        with timer("decoder image"):
+            self.decoder.set_image(emb)
+        # Get points for this crop
+        points = grid * np.array(crop.hw[::-1], np.float64)                       # (n, 2) crop pixels (x, y)
+        coords = transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
+        # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
+        step = self.decoder.batch_size                                             # results do not depend on it
+        batches = [slice(b0, b0 + step) for b0 in range(0, len(points), step)]
 
-    def _decode_batch(self, coords, points, crop, crop_hw, img_hw):
-        """One batch of grid points (1024 frame, crop pixels): predicted IoUs, then masks only for
-        the candidates that pass, filtered at the crop's resolution. Returns (kept candidates,
-        n candidates, n prompts decoded, seconds per step)."""
+        def decode(b: slice) -> tuple[amg.MaskRecords, _Counts]:
+            return self._decode_batch(coords[b], points[b], crop, timer)
+
+        parts = list(self._pool.map(decode, batches)) if self._pool else [decode(b) for b in batches]
+        data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
+        # Remove duplicates within this crop
+        with timer("nms"):
+            data = data.filter(amg.box_nms(data.box, data.iou, self.options.box_nms_thresh))
+        # Return to the original image frame
+        shift = np.array([x0, y0])
+        data = replace(data, box=data.box + np.tile(shift, 2), point=data.point + shift)
+        return data, sum((n for _, n in parts), _Counts())
+
+    def _decode_batch(self, coords: np.ndarray, points: np.ndarray, crop: _Crop,
+                      timer: StepTimer) -> tuple[amg.MaskRecords, _Counts]:
+        """One batch of grid points, coords (B, 2) in the 1024 frame and points (B, 2) in crop pixels:
+        predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
+        resolution (the reference's `_process_batch`, IoU filter first)."""
         opt = self.options
-        timer = _Timer()
-        iou_thr = np.float32(opt.pred_iou_thresh)
-        stab_thr = np.float32(opt.stability_score_thresh)
-        batch_coords = np.stack([coords, np.zeros_like(coords)], axis=1)          # point + padding point
-        batch_labels = np.tile(np.array([1.0, -1.0]), (len(coords), 1))
-        t0 = time.perf_counter()
-        iou, state = self.decoder.predict_iou(batch_coords, batch_labels)
-        t0 = timer.add("decoder iou", t0)
-        cand_iou = iou[:, 1:4].reshape(-1).astype(np.float32)                     # point-major, 3 per point
-        cand = np.flatnonzero(cand_iou > iou_thr) if opt.pred_iou_thresh > 0 else np.arange(cand_iou.size)
-        t0 = timer.add("filters", t0)
-        kept: list[dict] = []
+        # Predict the IoUs of the multimask outputs (tokens 1..3)
+        with timer("decoder iou"):
+            iou, state = self.decoder.predict_iou(*single_point_prompts(coords))
+        iou = iou[:, 1:4].reshape(-1).astype(np.float32)                           # (3B,) point-major
+        # Filter by predicted IoU
+        with timer("filters"):
+            cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh)) if opt.pred_iou_thresh > 0 \
+                else np.arange(iou.size)
         if cand.size == 0:
-            return kept, 0, 0, timer.t
-        cand_low = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)   # (n, 256, 256)
+            return amg.MaskRecords.empty(), _Counts()
+        # Decode the candidates' masks (each prompt's once)
+        with timer("decoder masks"):
+            low_res = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)  # (n, 256, 256)
         del state
-        t0 = timer.add("decoder masks", t0)
-        for c0 in range(0, len(cand), 32):                                        # bounded memory at full res
-            sl = slice(c0, c0 + 32)
-            logits = amg.upscale_logits(cand_low[sl], crop_hw)
-            t0 = timer.add("upscale", t0)
-            stab = amg.stability_score(logits, opt.stability_score_offset)
-            ok = stab >= stab_thr if opt.stability_score_thresh > 0 else np.ones(len(stab), bool)
-            masks = logits[ok] > 0.0
-            boxes = amg.masks_to_boxes(masks)
-            edge = amg.near_crop_edge(boxes, crop, [0, 0, img_hw[1], img_hw[0]])
-            idx = np.flatnonzero(ok)[~edge]
-            for j, box in zip(idx, boxes[~edge]):
-                c = cand[c0 + j]
-                kept.append({"iou": float(cand_iou[c]), "stability": float(stab[j]), "box": box,
-                             "point": points[c // 3], "low_res": cand_low[c0 + j].copy()})
-            t0 = timer.add("filters", t0)
-        return kept, len(cand), len(np.unique(cand // 3)), timer.t
+        n = cand.size
+        data = amg.MaskRecords(iou=iou[cand], stability=np.full(n, np.nan, np.float32),   # stability and
+                               box=np.zeros((n, 4), np.int64), point=points[cand // 3],   # box: at full res
+                               low_res=low_res, crop_index=np.full(n, crop.index, np.int64))
+        # Filter at the crop's resolution, 32 masks at a time (bounded memory)
+        chunks = [self._filter_full_res(data.filter(slice(c0, c0 + 32)), crop, timer) for c0 in range(0, n, 32)]
+        return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // 3)))
 
-    def _small_regions(self, kept, boxes_c, img_hw, timer):
-        """min_mask_region_area: fill small holes, drop small islands (image resolution); changed masks
-        score 0 in a new NMS at max(box_nms_thresh, crop_nms_thresh), so unchanged ones win."""
+    def _filter_full_res(self, data: amg.MaskRecords, crop: _Crop, timer: StepTimer) -> amg.MaskRecords:
+        """Candidates' stability scores and boxes from their logits at the crop's resolution, and the
+        reference's filters on them."""
         opt = self.options
-        t0 = time.perf_counter()
-        full = []
-        for r in kept:
-            crop = boxes_c[r["crop_index"]]
-            crop_hw = (crop[3] - crop[1], crop[2] - crop[0])
-            m = np.zeros(img_hw, bool)
-            m[crop[1]:crop[3], crop[0]:crop[2]] = amg.upscale_logits(r["low_res"][None], crop_hw)[0] > 0.0
-            full.append(m)
-        new, scores = [], []
-        for m in full:
-            m, ch1 = amg.remove_small_regions(m, opt.min_mask_region_area, "holes")
-            m, ch2 = amg.remove_small_regions(m, opt.min_mask_region_area, "islands")
-            new.append(m)
-            scores.append(0.0 if (ch1 or ch2) else 1.0)
-        boxes = amg.masks_to_boxes(np.stack(new))
-        order = amg.box_nms(boxes, np.array(scores), max(opt.box_nms_thresh, opt.crop_nms_thresh))
-        out, changed = [], {}
-        for i in order:
-            r = kept[i]
-            if scores[i] == 0.0:
-                r = dict(r, box=boxes[i])
-                changed[len(out)] = new[i]
-            out.append(r)
-        timer.add("small regions", t0)
-        return out, changed
+        with timer("upscale"):
+            logits = amg.upscale_logits(data.low_res, crop.hw)                     # (n, h, w)
+        with timer("filters"):
+            # Calculate stability score
+            data = replace(data, stability=amg.stability_score(logits, opt.stability_score_offset))
+            if opt.stability_score_thresh > 0:
+                keep = data.stability >= np.float32(opt.stability_score_thresh)
+                data, logits = data.filter(keep), logits[keep]
+            # Threshold masks and calculate boxes
+            data = replace(data, box=amg.masks_to_boxes(logits > 0.0))
+            # Filter boxes that touch crop boundaries
+            image_box = [0, 0, crop.image_hw[1], crop.image_hw[0]]
+            return data.filter(~amg.near_crop_edge(data.box, list(crop.box), image_box))
+
+    def _small_regions(self, data: amg.MaskRecords,
+                       crops: list[_Crop]) -> tuple[amg.MaskRecords, dict[int, np.ndarray]]:
+        """min_mask_region_area (the reference's `postprocess_small_regions`): fill small holes, drop
+        small islands at the image resolution; changed masks get new boxes and score 0 in a new NMS at
+        max(box_nms_thresh, crop_nms_thresh), so unchanged ones win. Returns the kept records and
+        {row: (H, W) bool} of the changed masks."""
+        opt = self.options
+        area = opt.min_mask_region_area
+        new, changed = [], []
+        for low_res, ci in zip(data.low_res, data.crop_index):
+            mask, holes = amg.remove_small_regions(crops[ci].mask(low_res, crops[ci].image_hw), area, "holes")
+            mask, islands = amg.remove_small_regions(mask, area, "islands")
+            new.append(mask)
+            changed.append(holes or islands)
+        changed = np.array(changed)
+        boxes = amg.masks_to_boxes(np.stack(new))                                  # (n, 4)
+        keep = amg.box_nms(boxes, (~changed).astype(np.float64), max(opt.box_nms_thresh, opt.crop_nms_thresh))
+        data = replace(data, box=np.where(changed[:, None], boxes, data.box)).filter(keep)
+        return data, {row: new[i] for row, i in enumerate(keep) if changed[i]}

@@ -67,7 +67,8 @@ def resolve_providers(providers: str | Sequence[str] | None) -> list[str]:
     return wanted
 
 
-def session_options(threads: int = 2) -> ort.SessionOptions:
+def session_options(threads: int) -> ort.SessionOptions:
+    """Session options: `threads` intra-op threads, one inter-op thread, every graph optimisation."""
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
@@ -76,10 +77,14 @@ def session_options(threads: int = 2) -> ort.SessionOptions:
     return so
 
 
-def create_session(model: str | Path | bytes, providers: Sequence[str], threads: int = 2,
+def create_session(model: str | Path | bytes, providers: Sequence[str], threads: int,
                    what: str = "model", disabled_optimizers: Sequence[str] = ()) -> ort.InferenceSession:
     """An InferenceSession on a file path or serialized bytes; a missing or unreadable file raises
-    ModelFileError naming it. disabled_optimizers: ORT graph transformers to skip by name."""
+    ModelFileError naming it.
+
+    providers: resolved execution providers in preference order (`resolve_providers`).
+    threads: intra-op threads (`RuntimeParams.threads` holds the default).
+    disabled_optimizers: ORT graph transformers to skip by name."""
     if not isinstance(model, bytes):
         path = Path(model)
         if not path.is_file():

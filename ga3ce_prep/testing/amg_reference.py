@@ -7,14 +7,12 @@ against in `make bench-objects`); use MobileSamSegmenter for real work.
 """
 from __future__ import annotations
 
-import time
-from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..estimators import amg
-from ..estimators.mobilesam import ImageEncoder, OfficialDecoder, transform_coords
+from ..estimators.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, transform_coords
 
 
 @dataclass
@@ -37,45 +35,42 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
     generator's default path."""
     if options.crop_n_layers or options.min_mask_region_area:
         raise ValueError("the reference path covers crop_n_layers = 0 and min_mask_region_area = 0")
-    timings = defaultdict(float)
+    timer = StepTimer()
     h, w = rgb.shape[:2]
-    t = time.perf_counter()
-    emb = encoder.embed(rgb)
-    timings["encoder"] += time.perf_counter() - t
+    with timer("encoder"):
+        emb = encoder.embed(rgb)
     points = amg.build_point_grid(options.points_per_side) * np.array([w, h], np.float64)
     masks, scores, stab, boxes, pts, cands = [], [], [], [], [], []
     for b0 in range(0, len(points), options.points_per_batch):
         batch = points[b0:b0 + options.points_per_batch]
-        t = time.perf_counter()
-        full, iou = [], []
-        for p in transform_coords(batch, (h, w)):           # one call per point, as the official export needs
-            m, q = decoder(emb, np.array([[p, [0.0, 0.0]]]), np.array([[1.0, -1.0]]), (h, w),
-                           outputs=("masks", "iou_predictions"))
-            full.append(m[0, 1:4])                           # multimask outputs: tokens 1..3
-            iou.append(q[0, 1:4])
-        timings["decoder"] += time.perf_counter() - t
-        t = time.perf_counter()
-        logits = np.concatenate(full)                        # (3B, H, W), point-major
-        iou = np.concatenate(iou).astype(np.float32)
-        point_of = np.repeat(np.arange(b0, b0 + len(batch)), 3)
-        cands.append(np.stack([point_of, np.tile([1, 2, 3], len(batch)), iou], axis=1))
-        keep = iou > np.float32(options.pred_iou_thresh) if options.pred_iou_thresh > 0 else np.ones(len(iou), bool)
-        logits, iou, point_of = logits[keep], iou[keep], point_of[keep]
-        s = amg.stability_score(logits, options.stability_score_offset)
-        keep = s >= np.float32(options.stability_score_thresh) if options.stability_score_thresh > 0 \
-            else np.ones(len(s), bool)
-        binary = logits[keep] > 0.0
-        masks.append(binary)
-        scores.append(iou[keep])
-        stab.append(s[keep])
-        boxes.append(amg.masks_to_boxes(binary))
-        pts.append(points[point_of[keep]])
-        timings["filters"] += time.perf_counter() - t
-    t = time.perf_counter()
-    masks = np.concatenate(masks) if masks else np.zeros((0, h, w), bool)
-    scores, stab = np.concatenate(scores), np.concatenate(stab)
-    boxes, pts = np.concatenate(boxes), np.concatenate(pts)
-    order = amg.box_nms(boxes, scores, options.box_nms_thresh)
-    timings["nms"] += time.perf_counter() - t
+        with timer("decoder"):
+            full, iou = [], []
+            for p in transform_coords(batch, (h, w)):       # one call per point, as the official export needs
+                m, q = decoder(emb, np.array([[p, [0.0, 0.0]]]), np.array([[1.0, -1.0]]), (h, w),
+                               outputs=("masks", "iou_predictions"))
+                full.append(m[0, 1:4])                       # multimask outputs: tokens 1..3
+                iou.append(q[0, 1:4])
+        with timer("filters"):
+            logits = np.concatenate(full)                    # (3B, H, W), point-major
+            iou = np.concatenate(iou).astype(np.float32)
+            point_of = np.repeat(np.arange(b0, b0 + len(batch)), 3)
+            cands.append(np.stack([point_of, np.tile([1, 2, 3], len(batch)), iou], axis=1))
+            keep = iou > np.float32(options.pred_iou_thresh) if options.pred_iou_thresh > 0 \
+                else np.ones(len(iou), bool)
+            logits, iou, point_of = logits[keep], iou[keep], point_of[keep]
+            s = amg.stability_score(logits, options.stability_score_offset)
+            keep = s >= np.float32(options.stability_score_thresh) if options.stability_score_thresh > 0 \
+                else np.ones(len(s), bool)
+            binary = logits[keep] > 0.0
+            masks.append(binary)
+            scores.append(iou[keep])
+            stab.append(s[keep])
+            boxes.append(amg.masks_to_boxes(binary))
+            pts.append(points[point_of[keep]])
+    with timer("nms"):
+        masks = np.concatenate(masks) if masks else np.zeros((0, h, w), bool)
+        scores, stab = np.concatenate(scores), np.concatenate(stab)
+        boxes, pts = np.concatenate(boxes), np.concatenate(pts)
+        order = amg.box_nms(boxes, scores, options.box_nms_thresh)
     return ReferenceResult(masks=masks[order], scores=scores[order], stability=stab[order], boxes=boxes[order],
-                           points=pts[order], candidates=np.concatenate(cands), timings=dict(timings))
+                           points=pts[order], candidates=np.concatenate(cands), timings=dict(timer.seconds))
