@@ -80,7 +80,7 @@ class BlazePose(PoseBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(BlazePoseOptions):
-        variant: Literal["full", "heavy"] = "full"  # landmark model: full (about 3x faster) or heavy (MediaPipe's most accurate); registry keys pose_landmark_<variant>
+        variant: Literal["full", "heavy"] = "full"  # landmark model: full (18 ms a frame on 1 thread) or heavy (36 ms; MediaPipe's most accurate); registry keys pose_landmark_<variant>
         min_visibility: float = param(0.5, minimum=0, maximum=1)  # landmark visibility below which a joint is NaN and left out of the 2D fit
         head_top_height: float = param(0.12, minimum=0)  # metres from the ear midpoint up to the head top (BlazePose has no head-top landmark)
         ray_alignment: bool = True  # turn the world landmarks so their z is the ray through the visible landmarks (the model sees the person along it); false: MediaPipe's image-aligned axes
