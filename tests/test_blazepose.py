@@ -242,6 +242,34 @@ def test_placement_on_the_synthetic_world_2d_only_vs_depth_refined(synth_world_6
     assert bd < 0.08 and b2 > 0.15            # 10% too small: 2D-only is tens of cm off, depth fixes it
 
 
+def test_place_landmarks_2d_only_and_with_depth():
+    """A person 10% larger than the model's world shape: 2D-only lands 10% too near; the depth
+    refinement (face landmarks on the skin, body joints 5 cm behind it) finds the true root."""
+    rng = np.random.default_rng(4)
+    lm_true, _ = _rest_landmarks()
+    unused = np.isnan(lm_true).any(1)
+    lm_true[unused] = lm_true[L["nose"]]                             # mouth, eye corners, thumbs, heels
+    hip = 0.5 * (lm_true[L["left_hip"]] + lm_true[L["right_hip"]])
+    world = (lm_true - hip) / 1.1
+    uv = project(lm_true, K)
+    vis = np.full(bp.N_BODY, 0.9)
+    vis[rng.choice(bp.N_BODY, 5, replace=False)] = 0.1
+    vis[unused] = 0.0
+    lm = bp.PoseLandmarks(uv, vis, np.ones(bp.N_BODY), world, 1.0, 1.0, bp.Roi(hip[:2], 100.0, 0.0))
+    depth = np.zeros((480, 640))
+    order = np.argsort(-lm_true[:, 2])                               # nearer landmarks painted last
+    for i in order:
+        u, v = np.rint(uv[i]).astype(int)
+        depth[v - 2:v + 3, u - 2:u + 3] = lm_true[i, 2] - (0.0 if i in bp.FACE else 0.05)
+    flat = bp.place_landmarks(lm, K, 0.5, ray_alignment=False)
+    assert np.linalg.norm(project(flat, K)[vis > 0.5] - uv[vis > 0.5], axis=1).max() < 25   # fits the 2D
+    root2d = 0.5 * (flat[L["left_hip"]] + flat[L["right_hip"]])
+    assert root2d[2] == pytest.approx(hip[2] / 1.1, rel=0.02)
+    deep = bp.place_landmarks(lm, K, 0.5, ray_alignment=False, depth=depth, valid=depth > 0)
+    rootd = 0.5 * (deep[L["left_hip"]] + deep[L["right_hip"]])
+    assert np.linalg.norm(rootd - hip) < 0.03 < np.linalg.norm(root2d - hip)
+
+
 # --- the mapping -------------------------------------------------------------------------------------
 def _rest_landmarks():
     """BlazePose landmarks made from the synthetic rest skeleton, in camera axes (person facing the
