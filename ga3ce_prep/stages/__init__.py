@@ -57,6 +57,7 @@ BACKENDS: dict[str, str | Planned] = {
     "head/depth": "ga3ce_prep.stages.head:DepthHead",
     "pose/precomputed": "ga3ce_prep.stages.pose:PrecomputedPose",
     "pose/oracle": "ga3ce_prep.stages.pose:OraclePose",
+    "pose/blazepose": "ga3ce_prep.stages.pose:BlazePose",
     "pose/onnx": Planned("a smpl+head_30 crop pose model through ONNX Runtime"),
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",

@@ -1,17 +1,22 @@
 """The pose stage: P_pose, 30 smpl+head_30 joints (huge8 order, ga3ce_prep/skeleton.py) in metres,
 camera frame. A failure degrades the frame (NaN pose); GA3CE then runs without the pose tokens.
 
-Backends: `precomputed` (an offline estimator's output, stages/precomputed.py layout) and `oracle`
-(the synthetic truth plus estimator-like seeded noise, stages/oracle_noise.py `noisy_pose`).
+Backends: `precomputed` (an offline estimator's output, stages/precomputed.py layout), `oracle`
+(the synthetic truth plus estimator-like seeded noise, stages/oracle_noise.py `noisy_pose`) and
+`blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/blazepose.py).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from ..frames import FrameRef
+from ..errors import ModelFileError
+from ..estimators.blazepose import BlazePoseOptions, place_landmarks
+from ..estimators.blazepose_smpl import to_smpl_head30
+from ..frames import FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
 from .base import PoseBackend
@@ -62,3 +67,58 @@ class OraclePose(PoseBackend):
         truth = np.asarray(truth_frame(p.truth, frame.id, maps=False).pose, np.float64)
         return noisy_pose(truth, frame_rng(p.seed, "pose/oracle", frame.id), p.sigma_body, p.sigma_face,
                           p.scale_sigma, p.scale_bias, p.offset_sigma)
+
+
+class BlazePose(PoseBackend):
+    """BlazePose GHUM (full or heavy, LiteRT) on the frame's image: the person matching the frame's
+    body box (else the one around its head box, else the best detection), world landmarks
+    placed in the camera frame by a 2D fit through K (no depth yet: the stage depends on `input`
+    only; `place_landmarks` takes a depth map once the DAG passes one), mapped to smpl+head_30
+    (estimators/blazepose_smpl.py). No person: FrameError (the frame keeps a NaN pose)."""
+
+    name = "blazepose"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(BlazePoseOptions):
+        variant: Literal["full", "heavy"] = "full"  # landmark model: full (18 ms a frame on 1 thread) or heavy (36 ms; MediaPipe's most accurate); registry keys pose_landmark_<variant>
+        min_visibility: float = param(0.5, minimum=0, maximum=1)  # landmark visibility below which a joint is NaN and left out of the 2D fit
+        head_top_height: float = param(0.12, minimum=0)  # metres from the ear midpoint up to the head top (BlazePose has no head-top landmark)
+        ray_alignment: bool = True  # turn the world landmarks so their z is the ray through the visible landmarks (the model sees the person along it); false: MediaPipe's image-aligned axes
+
+    def _keys(self) -> tuple[str, str]:
+        return "pose_detection", f"pose_landmark_{self.p.variant}"
+
+    def check(self) -> None:
+        """Before any work: both registry files are fetched and have their pinned SHA-256."""
+        from ..registry_models import model_path, verify
+
+        for key in self._keys():
+            path = model_path(key)  # ModelFileError naming `ga3ce-prep models fetch` when missing
+            if not verify(key):
+                raise ModelFileError(f"stages.pose: registry model {key!r} at {path} does not have its pinned "
+                                     "SHA-256 (damaged or replaced): refused; run `ga3ce-prep models fetch` "
+                                     "to fetch it again")
+
+    def warm(self) -> None:
+        self.estimator()
+
+    def estimator(self):
+        """The process's detector and landmark interpreters (built once, on first use)."""
+        if getattr(self, "_estimator", None) is None:
+            from ..estimators.blazepose import BlazePoseEstimator
+            from ..registry_models import model_path
+
+            det, lmk = (model_path(k) for k in self._keys())
+            self._estimator = BlazePoseEstimator(det, lmk, self.p)
+        return self._estimator
+
+    def __getstate__(self):  # interpreters stay in the process that made them (dask workers rebuild theirs)
+        state = dict(self.__dict__)
+        state.pop("_estimator", None)
+        return state
+
+    def pose(self, frame: FrameRef) -> np.ndarray:
+        p = self.p
+        lm = self.estimator()(load_rgb(frame.image_path), frame.body_box, frame.head_box)
+        cam = place_landmarks(lm, np.asarray(frame.K, np.float64), p.min_visibility, p.ray_alignment)
+        return to_smpl_head30(cam, lm.visibility, p.min_visibility, p.head_top_height).astype(np.float32)
