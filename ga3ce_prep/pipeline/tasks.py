@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import Ga3ceError
 from ..frames import FrameRef
 from ..skeleton import N_JOINTS
-from ..stages import UPSTREAM, dependency_order
+from ..stages import call_backend, dependency_order
 from ..stages.base import DepthMap, Sourced
 from .cache import Cache
 from .config import StageConfig
@@ -268,12 +268,8 @@ def _sources(env: TaskEnv, stage: str) -> tuple[str, ...]:
 
 
 def _call(env: TaskEnv, entry: StageEntry, i: int, frame: FrameRef, inputs: dict[str, Any]) -> Any:
-    """Frame i through its stage's backend, with the stage's own upstream input (the depth map for
-    objects and head) positionally and the backend's `needs` by keyword, from `inputs`."""
-    stage = entry.stage
-    b = backend(env, stage)
-    args = [inputs[u] for u in UPSTREAM[stage] if u != "input"]
-    return entry.attempt(i, getattr(b, stage), frame, *args, **{n: inputs[n] for n in b.needs})
+    """Frame i through its stage's backend (`stages.call_backend`), recorded in `entry`."""
+    return entry.attempt(i, call_backend, backend(env, entry.stage), frame, inputs)
 
 
 def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:
@@ -283,9 +279,8 @@ def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:
         return [StageReport("input", len(shard.frames))]
     _single_threaded()
     entry = new_entry("input", shard)
-    fn = backend(env, "input").check_frame
     for i, f in enumerate(shard.frames):
-        entry.attempt(i, fn, f)
+        _call(env, entry, i, f, {})
     return [entry.save(cache)]
 
 

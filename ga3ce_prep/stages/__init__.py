@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
+from typing import Any
 
 from ..errors import ConfigError
 from .base import Backend
@@ -96,6 +97,16 @@ def upstream_of(backends: dict[str, str]) -> dict[str, tuple[str, ...]]:
     return up
 
 
+def call_backend(backend: Backend, frame, inputs: dict[str, Any]) -> Any:
+    """One frame through a backend's per-frame method: its stage's own upstream output (the depth
+    map for objects and head) positionally, and what the backend `needs` by keyword, from `inputs`
+    (stage -> that stage's output for this frame)."""
+    stage = backend.stage
+    method = backend.check_frame if stage == "input" else getattr(backend, stage)
+    args = [inputs[u] for u in UPSTREAM[stage] if u != "input"]
+    return method(frame, *args, **{n: inputs[n] for n in backend.needs})
+
+
 def dependency_order(upstream: dict[str, tuple[str, ...]]) -> list[str]:
     """The stages in an order where each comes after its upstream (STAGES order breaks ties)."""
     order: list[str] = []
@@ -108,4 +119,4 @@ def dependency_order(upstream: dict[str, tuple[str, ...]]) -> list[str]:
 
 
 __all__ = ["BACKENDS", "DROPS_FRAME", "OPTIONAL_UPSTREAM", "STAGES", "UPSTREAM", "Planned", "backend_class",
-           "dependency_order", "upstream_of"]
+           "call_backend", "dependency_order", "upstream_of"]

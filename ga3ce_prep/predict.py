@@ -1,0 +1,286 @@
+"""`ga3ce-prep predict`: a pipeline's stages on one RGB(-D) frame, without a store, then a GA3CE
+checkpoint if one is given.
+
+    p = Predictor()                                  # pipelines/folder-real.yaml: registry models
+    r = p("photo.jpg", head_box=(150, 15, 300, 190), fov=60)   # no depth: FastDepth estimates it
+    r.view, r.gaze, r.objects, r.yaw_pitch(r.view)
+
+With a depth file the pipeline's depth backend reads it (`sensor`: PNG millimetres or .npy metres,
+`depth_scale` metres per unit); without one, `depth: fastdepth` estimates it (coarse: docs/models.md).
+The stages run in the pipeline's dependency order through the same per-frame calls as `run`; a
+failure of a stage that drops frames in a run (depth, head, view) is an error here, one that
+degrades them (objects, pose) leaves its output empty or NaN and is reported.
+
+Directions are unit vectors in the camera frame (x right, y down, z forward); yaw and pitch are in
+degrees with yaw 0 / pitch 0 = looking straight at the camera, yaw > 0 toward the image's right
+(+x), pitch > 0 upward (-y).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .errors import ConfigError, FrameError, Ga3ceError
+from .frames import DepthMap, FrameRef
+from .skeleton import N_JOINTS
+from .stages import DROPS_FRAME, call_backend, dependency_order
+from .stages.base import FrameObjects, Sourced
+
+DEFAULT_PIPELINE = "folder-real"
+NO_DEPTH = {"stages.depth": {"backend": "fastdepth"}}  # the default pipeline without a depth file
+
+
+@dataclass
+class Prediction:
+    """One frame's 3D context and gaze. view, gaze (3,) unit (gaze NaN without a checkpoint);
+    head_pos (3,) metres; pose (30, 3) metres, NaN = missing; objects (M, 3) metres with their
+    mask areas (M,) px and scores (M,); depth: the completed depth map used; sources: how each
+    stage's result came about where its backend says (e.g. view: "face" or "pose");
+    degraded: stage -> the error that left its output empty."""
+
+    frame: FrameRef
+    view: np.ndarray
+    gaze: np.ndarray
+    head_pos: np.ndarray
+    pose: np.ndarray
+    objects: np.ndarray
+    area: np.ndarray
+    score: np.ndarray
+    depth: DepthMap
+    sources: dict[str, str] = field(default_factory=dict)
+    degraded: dict[str, str] = field(default_factory=dict)
+
+    @staticmethod
+    def yaw_pitch(d: np.ndarray) -> tuple[float, float]:
+        """(yaw, pitch) degrees of a camera-frame direction (module docstring's convention)."""
+        x, y, z = (float(c) for c in d)
+        return math.degrees(math.atan2(x, -z)), math.degrees(math.asin(max(-1.0, min(1.0, -y))))
+
+    def to_dict(self) -> dict[str, Any]:
+        def vec(a):
+            return None if not np.all(np.isfinite(a)) else [round(float(x), 6) for x in a]
+
+        out = {"image": str(self.frame.image_path), "K": self.frame.K.tolist(),
+               "head_box": self.frame.head_box.tolist(), "view": vec(self.view), "gaze": vec(self.gaze),
+               "head_pos": vec(self.head_pos), "sources": self.sources, "degraded": self.degraded,
+               "pose": [vec(j) for j in self.pose],
+               "objects": [{"xyz": vec(x), "area": int(a), "score": round(float(s), 4)}
+                           for x, a, s in zip(self.objects, self.area, self.score)]}
+        for name in ("view", "gaze"):
+            d = getattr(self, name)
+            if np.all(np.isfinite(d)):
+                out[f"{name}_yaw_pitch_deg"] = [round(v, 2) for v in self.yaw_pitch(d)]
+        return out
+
+    def format(self) -> str:
+        def row(name: str, d: np.ndarray, note: str = "") -> str:
+            if not np.all(np.isfinite(d)):
+                return f"{name:<14} -"
+            yaw, pitch = self.yaw_pitch(d)
+            return (f"{name:<14} ({d[0]:+.3f}, {d[1]:+.3f}, {d[2]:+.3f})   yaw {yaw:+6.1f} deg  "
+                    f"pitch {pitch:+6.1f} deg{note}")
+
+        src = f"   from {self.sources['view']}" if "view" in self.sources else ""
+        lines = [row("view prior v", self.view, src), row("gaze g", self.gaze)]
+        h = self.head_pos
+        lines.append(f"{'head t_object':<14} ({h[0]:+.3f}, {h[1]:+.3f}, {h[2]:+.3f}) m")
+        lines.append(f"{'pose':<14} {int(np.isfinite(self.pose).all(1).sum())} of {N_JOINTS} joints")
+        if len(self.objects):
+            dist = np.linalg.norm(self.objects - h, axis=1)
+            lines.append(f"{'objects':<14} {len(self.objects)} (from the head: {dist.min():.2f} to {dist.max():.2f} m)")
+        else:
+            lines.append(f"{'objects':<14} 0")
+        for stage, err in self.degraded.items():
+            lines.append(f"{'':<14} {stage} failed ({err}); the frame goes on without it")
+        return "\n".join(lines)
+
+
+def intrinsics(size: tuple[int, int], fov: float | None = None, K: Sequence | str | Path | None = None) -> np.ndarray:
+    """K (3, 3): given (a 3x3, or a JSON file with fx, fy, cx, cy or K), or from a horizontal
+    field of view in degrees with the principal point at the image centre. size: (W, H)."""
+    if K is not None:
+        if isinstance(K, str | Path):
+            from .datasets.folder import read_intrinsics_json
+
+            return read_intrinsics_json(Path(K))
+        return np.asarray(K, np.float64).reshape(3, 3)
+    if fov is None or not 1.0 < fov < 179.0:
+        raise ConfigError(f"field of view {fov}: give the camera's intrinsics (--intrinsics K.json) or its "
+                          "horizontal field of view in degrees (--fov, e.g. 60)")
+    W, H = size
+    f = 0.5 * W / math.tan(math.radians(fov) / 2)
+    return np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]], np.float64)
+
+
+class Predictor:
+    """A pipeline's backends, built once, run on single frames; optionally a GA3CE checkpoint.
+
+    pipeline: a pipeline file or bundled name (default folder-real, with FastDepth when a frame
+    has no depth file); overrides: "stages.X.params.Y=..." settings; checkpoint: a `best.pt` from
+    `ga3ce-prep train`."""
+
+    def __init__(self, pipeline: str | Path | None = None, checkpoint: str | Path | None = None,
+                 overrides: list[str] | None = None):
+        self.pipeline, self.overrides = pipeline or DEFAULT_PIPELINE, list(overrides or [])
+        self._backends: dict[bool, tuple[Any, dict[str, Any]]] = {}  # has depth file -> (conf, backends)
+        self.model = None
+        if checkpoint is not None:
+            from .train.checkpoint import build_model, check_checkpoint, load_checkpoint
+
+            ckpt = load_checkpoint(checkpoint)
+            check_checkpoint(ckpt, checkpoint)
+            self.model = build_model(ckpt)
+
+    def _stages(self, has_depth: bool):
+        """The loaded pipeline and its checked, warmed backends (the no-depth variant swaps in
+        FastDepth when the pipeline reads a sensor)."""
+        if has_depth not in self._backends:
+            import yaml
+
+            from .pipeline.config import apply_overrides, check_pipeline, load_pipeline, resolve_pipeline_path
+
+            path = resolve_pipeline_path(self.pipeline)
+            raw = apply_overrides(yaml.safe_load(path.read_text()), self.overrides)
+            if not has_depth and raw["stages"]["depth"]["backend"] == "sensor":
+                raw = apply_overrides(raw, NO_DEPTH)
+            conf = load_pipeline(raw, Path.cwd(), check_files=False)
+            backends = dict(zip(conf.stages, check_pipeline(conf, Path.cwd())))
+            for b in backends.values():
+                b.warm()
+            self._backends[has_depth] = (conf, backends)
+        return self._backends[has_depth]
+
+    def __call__(self, image: str | Path, head_box: Sequence[float], *, depth: str | Path | None = None,
+                 depth_scale: float = 1.0, fov: float | None = 60.0, K: Sequence | str | Path | None = None,
+                 body_box: Sequence[float] | None = None) -> Prediction:
+        """Predict one frame: image file, head box (x1, y1, x2, y2) px, optional depth file."""
+        from PIL import Image
+
+        image = Path(image)
+        if not image.is_file():
+            raise FrameError(f"image file not found: {image}")
+        with Image.open(image) as im:
+            size = im.size
+        frame = FrameRef(id=image.stem, split="test", scene="predict", image_path=image,
+                         K=intrinsics(size, fov, K), image_size=size,
+                         head_box=np.asarray(head_box, np.float32),
+                         depth_path=Path(depth) if depth is not None else None, depth_scale=depth_scale)
+        if body_box is not None:
+            frame.body_box = np.asarray(body_box, np.float32)
+        conf, backends = self._stages(depth is not None)
+        out, sources, degraded = {}, {}, {}
+        for stage in dependency_order(conf.upstream):
+            try:
+                r = call_backend(backends[stage], frame, out)
+            except Ga3ceError as e:  # as in a run: dropping stages stop, degrading ones leave a gap
+                if DROPS_FRAME[stage]:
+                    raise FrameError(f"{stage} ({conf.stages[stage].backend}) failed on {image}: {e}") from e
+                degraded[stage] = str(e)
+                r = FrameObjects.empty() if stage == "objects" else np.full((N_JOINTS, 3), np.nan, np.float32)
+            if isinstance(r, Sourced):
+                sources[stage], r = r.source, r.value
+            out[stage] = r
+        obj: FrameObjects = out["objects"]
+        pred = Prediction(frame=frame, view=np.asarray(out["view"], np.float32),
+                          gaze=np.full(3, np.nan, np.float32), head_pos=np.asarray(out["head"], np.float32),
+                          pose=np.asarray(out["pose"], np.float32), objects=obj.xyz, area=obj.area,
+                          score=obj.score, depth=out["depth"], sources=sources, degraded=degraded)
+        if self.model is not None:
+            pred.gaze = self._gaze(pred)
+        return pred
+
+    def _gaze(self, p: Prediction) -> np.ndarray:
+        """The model's g for one frame; objects largest mask first, as the trainer feeds them."""
+        import torch
+
+        order = np.argsort(-p.area.astype(np.float64), kind="stable")
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
+        with torch.no_grad():
+            g = self.model(t(p.view), t(p.pose), t(p.head_pos), t(p.objects[order]),
+                           torch.ones(1, len(order), dtype=torch.bool))
+        return g[0].numpy().astype(np.float32)
+
+
+def one_frame_store(p: Prediction):
+    """The prediction as a one-frame ContextStore (for the store's drawing and PLY code)."""
+    from .store import ContextStore
+
+    f = p.frame
+    frames = {"id": np.array([f.id]), "K": f.K[None].astype(np.float32), "image_size": np.array([f.image_size]),
+              "head_box": f.head_box[None], "head_pos": p.head_pos[None], "pose": p.pose[None],
+              "view": p.view[None], "gaze": p.gaze[None], "obj_start": np.zeros(1, np.int64),
+              "obj_count": np.array([len(p.objects)], np.int32)}
+    objects = {"xyz": p.objects, "area": p.area, "score": p.score}
+    return ContextStore(path="(predict)", attrs={}, frames=frames, objects=objects, failures={})
+
+
+# --- command line ---------------------------------------------------------------------------------
+import click  # noqa: E402
+
+
+def _box(value: str | None) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    try:
+        box = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        box = ()
+    if len(box) != 4 or not (box[2] > box[0] and box[3] > box[1]):
+        raise click.BadParameter(f"{value!r}: expected x1,y1,x2,y2 in pixels with x2 > x1 and y2 > y1")
+    return box
+
+
+@click.command()
+@click.option("--image", "-i", required=True, type=click.Path(dir_okay=False, exists=True), help="RGB image file.")
+@click.option("--head-box", required=True, help="The subject's head box x1,y1,x2,y2 in pixels.")
+@click.option("--body-box", default=None, help="The subject's body box x1,y1,x2,y2 (helps the pose detector).")
+@click.option("--depth", "-d", default=None, type=click.Path(dir_okay=False, exists=True),
+              help="Depth registered to the image: PNG (uint16) or .npy. Without it FastDepth estimates depth.")
+@click.option("--depth-scale", default=None, type=float,
+              help="Metres per depth unit (default: 0.001 for PNG, 1 for .npy).")
+@click.option("--intrinsics", "K", default=None, type=click.Path(dir_okay=False, exists=True),
+              help='Camera intrinsics JSON: {"fx", "fy", "cx", "cy"} or {"K": 3x3}.')
+@click.option("--fov", default=60.0, show_default=True, help="Horizontal field of view in degrees, when no --intrinsics.")
+@click.option("--checkpoint", "-c", default=None, type=click.Path(dir_okay=False, exists=True),
+              help="A GA3CE checkpoint (best.pt) to predict the gaze g; without it only the 3D context and v.")
+@click.option("--pipeline", "-p", default=DEFAULT_PIPELINE, show_default=True,
+              help="Pipeline file or bundled name whose backends run on the frame.")
+@click.option("--set", "overrides", multiple=True, help="Override a pipeline setting (repeatable).")
+@click.option("--out", "-o", default="predict.png", show_default=True, type=click.Path(dir_okay=False),
+              help="Drawing: the head box, v (blue), g (red), the objects and the pose joints.")
+@click.option("--ply", default=None, type=click.Path(dir_okay=False), help="Also write the 3D context as a PLY point set.")
+@click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
+def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, overrides, out, ply,
+            as_json) -> None:
+    """Run the pipeline's stages on one frame (no store) and, with --checkpoint, the GA3CE model.
+
+    Prints the view prior v and the gaze g (unit vectors, camera frame x right, y down, z forward;
+    yaw/pitch in degrees, 0/0 = looking at the camera, yaw > 0 toward the image's right, pitch > 0
+    up), the head position and the objects found; draws them into --out.
+
+    \b
+    The default pipeline (pipelines/folder-real.yaml) uses the registry models only
+    (`ga3ce-prep models fetch`): FastDepth when there is no depth file, the geometric segmenter,
+    BlazePose, the face mesh's head direction. They are not the paper's models (docs/models.md).
+    """
+    if depth_scale is None:
+        depth_scale = 0.001 if depth and Path(depth).suffix.lower() == ".png" else 1.0
+    p = Predictor(pipeline, checkpoint, list(overrides))
+    r = p(image, _box(head_box), depth=depth, depth_scale=depth_scale, fov=fov, K=K, body_box=_box(body_box))
+    from .viz import write_context
+
+    label = "gaze g (model)" if checkpoint else "gaze g (no checkpoint)"
+    write_context(one_frame_store(r), 0, r.frame, out, gaze_label=label)
+    if ply:
+        write_context(one_frame_store(r), 0, r.frame, ply, depth=r.depth.depth)
+    if as_json:
+        click.echo(json.dumps(r.to_dict(), indent=1))
+    else:
+        click.echo(r.format())
+        click.echo(f"wrote {out}" + (f" and {ply}" if ply else ""))
+

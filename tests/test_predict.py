@@ -1,0 +1,90 @@
+"""`ga3ce-prep predict` on a real photo nobody here made (scikit-image's astronaut), with the
+registry models: FastDepth for depth, the geometric segmenter, BlazePose, the face mesh; and a
+small GA3CE checkpoint for g."""
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from ga3ce_prep.cli import cli
+from ga3ce_prep.errors import FrameError
+from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.predict import Prediction, Predictor, intrinsics
+from ga3ce_prep.testing.photos import photo
+from ga3ce_prep.testing.toy_store import write_toy_store
+from ga3ce_prep.train import TrainConfig, train
+
+HEAD = (150, 15, 300, 190)  # the astronaut's head box, px
+
+
+@pytest.fixture(scope="module")
+def astronaut(tmp_path_factory):
+    p = tmp_path_factory.mktemp("photo") / "astronaut.png"
+    Image.fromarray(photo("astronaut")).save(p)
+    return p
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ck")
+    store = write_toy_store(d / "toy.zarr", 200, seed=3, frames_per_scene=20)
+    small = ModelConfig(num_encoder_layers=1, num_decoder_layers=1, dim_feedforward=128, head_hidden=128)
+    train(TrainConfig(store=str(store), out=str(d / "run"), epochs=1, batch_size=16, train_frames=32,
+                      val_frames=16, warmup_epochs=1, progress=False, model=small))
+    return d / "run" / "best.pt"
+
+
+def test_intrinsics_from_a_field_of_view():
+    K = intrinsics((640, 480), fov=90)
+    assert K[0, 0] == pytest.approx(320) and K[1, 1] == pytest.approx(320)
+    assert (K[0, 2], K[1, 2]) == (319.5, 239.5)
+
+
+def test_yaw_pitch_convention():
+    assert Prediction.yaw_pitch(np.array([0, 0, -1.0])) == (0.0, 0.0)           # at the camera
+    yaw, pitch = Prediction.yaw_pitch(np.array([1, 0, -1.0]) / np.sqrt(2))
+    assert yaw == pytest.approx(45) and pitch == pytest.approx(0)                 # toward the image's right
+    assert Prediction.yaw_pitch(np.array([0, -1, 0.0]))[1] == pytest.approx(90)   # up
+
+
+def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
+    r = Predictor()(astronaut, HEAD, fov=60)
+    assert r.sources["view"] == "face"
+    assert r.view[2] < -0.8                                   # she faces the camera
+    assert 0.8 < r.head_pos[2] < 2.5                          # FastDepth's head depth, metres
+    assert np.isnan(r.gaze).all()                             # no checkpoint
+    assert len(r.objects) > 5
+    assert np.isfinite(r.pose).all(1).sum() >= 10             # BlazePose placed the upper body
+    sho = np.linalg.norm(r.pose[16] - r.pose[17])
+    assert 0.2 < sho < 0.5                                    # shoulder width, metres
+    x1, y1, x2, y2 = HEAD
+    u = r.frame.K[0, 0] * r.head_pos[0] / r.head_pos[2] + r.frame.K[0, 2]
+    v = r.frame.K[1, 1] * r.head_pos[1] / r.head_pos[2] + r.frame.K[1, 2]
+    assert x1 < u < x2 and y1 < v < y2                        # t_object projects into the head box
+
+
+def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, checkpoint, tmp_path):
+    out = tmp_path / "p.png"
+    res = CliRunner().invoke(cli, ["predict", "-i", str(astronaut), "--head-box", ",".join(map(str, HEAD)),
+                                   "-c", str(checkpoint), "-o", str(out), "--json"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.output[res.output.index("{"):])
+    g = np.array(d["gaze"])
+    assert np.linalg.norm(g) == pytest.approx(1, abs=1e-5)
+    assert d["sources"] == {"view": "face"}
+    assert len(d["gaze_yaw_pitch_deg"]) == 2
+    img = np.asarray(Image.open(out))
+    assert img.shape[0] >= 480 and img.shape[2] == 3
+
+
+def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):
+    grey = tmp_path / "grey.png"
+    Image.fromarray(np.full((240, 320, 3), 128, np.uint8)).save(grey)
+    res = CliRunner().invoke(cli, ["predict", "-i", str(grey), "--head-box", "100,50,160,120", "-o",
+                                   str(tmp_path / "g.png")])
+    assert res.exit_code != 0
+    assert "view (facemesh) failed" in str(res.exception) or "failed" in res.output
+    with pytest.raises(FrameError, match=r"view \(facemesh\) failed"):
+        Predictor()(grey, (100, 50, 160, 120))
