@@ -88,3 +88,31 @@ def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):
     assert "view (facemesh) failed" in str(res.exception) or "failed" in res.output
     with pytest.raises(FrameError, match=r"view \(facemesh\) failed"):
         Predictor()(grey, (100, 50, 160, 120))
+
+
+def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
+    """pipelines/folder-real.yaml on a two-frame `folder` recording (the astronaut and its mirror,
+    a flat 1.6 m depth map): the registry models only, frames kept with v from the face."""
+    from ga3ce_prep.pipeline import run_pipeline
+    from ga3ce_prep.store import open_store
+    from ga3ce_prep.testing.photos import mirrored
+
+    rec = tmp_path / "rec"
+    (rec / "rgb").mkdir(parents=True)
+    (rec / "depth").mkdir()
+    img = photo("astronaut")
+    flipped, box = mirrored(img, HEAD)
+    for name, im in (("a", img), ("b", flipped)):
+        Image.fromarray(im).save(rec / "rgb" / f"{name}.png")
+        np.save(rec / "depth" / f"{name}.npy", np.full(im.shape[:2], 1.6, np.float32))
+    K = intrinsics((512, 512), fov=60)
+    (rec / "intrinsics.json").write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
+    (rec / "heads.csv").write_text("name,x1,y1,x2,y2\na,150,15,300,190\n" + "b," + ",".join(f"{c:g}" for c in box) + "\n")
+    summary = run_pipeline("folder-real", rec, tmp_path / "s.zarr", progress=False)
+    assert summary.counts.frames_kept == 2
+    s = open_store(tmp_path / "s.zarr")
+    assert s.frames["view_source"].tolist() == [0, 0]        # "face" for both
+    assert (s.frames["view"][:, 2] < -0.8).all()
+    assert np.sign(s.frames["view"][0, 0]) != np.sign(s.frames["view"][1, 0])   # the mirror flips x
+    assert np.isfinite(s.frames["pose"]).all(2).sum(1).min() >= 10
+    np.testing.assert_allclose(s.frames["head_pos"][:, 2], 1.6, atol=1e-3)
