@@ -50,7 +50,9 @@ def test_gfie_adapter_reads_columns_by_name(tmp_path):
     frames = list(open_dataset("gfie", _gfie(tmp_path)).frames())
     assert [f.id for f in frames] == ["train/scene2/0000", "train/scene2/0007", "test/scene1/0003"]
     f = frames[0]
-    assert f.split == "train" and f.scene == "train/scene2" and f.image_size == (W, H)
+    assert f.split == "train"
+    assert f.scene == "train/scene2"
+    assert f.image_size == (W, H)
     np.testing.assert_array_equal(f.K, [[200, 0, 80], [0, 210, 60], [0, 0, 1]])
     np.testing.assert_allclose(f.head_box, [10, 12, 30, 34])
     np.testing.assert_allclose(f.eye, [0.1, -0.2, 2.0])
@@ -58,7 +60,9 @@ def test_gfie_adapter_reads_columns_by_name(tmp_path):
     np.testing.assert_allclose(f.gaze_2d, [50, 60])
     assert frames[2].split == "test"
     d = load_depth(f.depth_path, f.depth_scale)
-    assert d.dtype == np.float32 and (d[:10] == 0).all() and np.allclose(d[10:], 2.0)
+    assert d.dtype == np.float32
+    assert (d[:10] == 0).all()
+    assert np.allclose(d[10:], 2.0)
     assert load_rgb(f.image_path).shape == (H, W, 3)
 
 
@@ -105,12 +109,14 @@ def test_cad120_normalised_boxes_and_mm_depth(tmp_path):
     depth[0, 0] = 0
     cv2.imwrite(str(root / "depth" / "D1S1A001" / "Depth_17.png"), depth)
     (f,) = list(open_dataset("cad120", root).frames())
-    assert f.id == "D1S1A001/17" and f.split == "test"
+    assert f.id == "D1S1A001/17"
+    assert f.split == "test"
     np.testing.assert_allclose(f.head_box, [40, 60, 60, 90])
     np.testing.assert_allclose(f.gaze_2d, [80, 90])
     np.testing.assert_allclose(f.gaze, [0, 1, 0], atol=1e-7)
     d = load_depth(f.depth_path, f.depth_scale)
-    assert d[0, 0] == 0 and d[5, 5] == pytest.approx(2.5)
+    assert d[0, 0] == 0
+    assert d[5, 5] == pytest.approx(2.5)
 
 
 
@@ -181,7 +187,9 @@ def test_gafa_adapter_split_skip_and_vectors(tmp_path):
     np.testing.assert_allclose(f.gaze, [0, 0, -1])
     np.testing.assert_allclose(f.eye, [0.2, -0.1, 1.0], rtol=1e-6)
     np.testing.assert_allclose(f.head_box, [72, 16, 129, 73])
-    assert f.keypoints_2d.shape == (25, 3) and f.image_size == (W, H) and f.depth_path is None
+    assert f.keypoints_2d.shape == (25, 3)
+    assert f.image_size == (W, H)
+    assert f.depth_path is None
     np.testing.assert_array_equal(f.K, [[100, 0, 80], [0, 100, 60], [0, 0, 1]])
 
 
@@ -222,8 +230,11 @@ def test_folder_adapter(tmp_path):
     _write_csv(root / "heads.csv", ["name", "x1", "y1", "x2", "y2", "split"],
                [["a", 1, 2, 3, 4, "train"], ["b", 5, 6, 7, 8, "test"], ["b", 9, 9, 19, 19, "test"]])
     frames = list(open_dataset("folder", root).frames())
-    assert [f.id for f in frames] == ["a", "b/0", "b/1"] and [f.split for f in frames] == ["train", "test", "test"]
-    assert frames[0].scene == "rec" and frames[0].image_size == (W, H) and np.isnan(frames[0].gaze).all()
+    assert [f.id for f in frames] == ["a", "b/0", "b/1"]
+    assert [f.split for f in frames] == ["train", "test", "test"]
+    assert frames[0].scene == "rec"
+    assert frames[0].image_size == (W, H)
+    assert np.isnan(frames[0].gaze).all()
     assert load_depth(frames[1].depth_path, frames[1].depth_scale)[0, 0] == pytest.approx(1.5)
     _write_csv(root / "heads.csv", ["name", "x1", "y1", "x2", "y2", "split"], [["a", 1, 2, 3, 4, "training"]])
     with pytest.raises(DatasetFormatError, match="training"):

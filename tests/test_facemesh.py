@@ -131,7 +131,8 @@ def test_astronaut_faces_the_camera_and_mirrors(estimator):
     img = photo("astronaut")
     K = K_from_hfov(512, 512)
     r = estimator.estimate(img, np.array(ASTRONAUT_HEAD), K)
-    assert r.detection.score > 0.8 and r.face_score > 0.9
+    assert r.detection.score > 0.8
+    assert r.face_score > 0.9
     assert np.linalg.norm(r.direction) == pytest.approx(1.0)
     assert r.direction[2] < -0.8
     assert np.linalg.norm(r.landmarks[1, :2] - [223, 131]) < 6   # nose tip, as the research measured
@@ -169,7 +170,8 @@ def test_cameraman_three_quarter_view(estimator):
     img = photo("camera")
     K = K_from_hfov(512, 512)
     d = estimator.estimate(img, np.array(CAMERAMAN_HEAD), K).direction
-    assert abs(d[0]) > 0.3 and d[0] > 0       # he faces image right
+    assert abs(d[0]) > 0.3  # he faces image right
+    assert d[0] > 0
     m_img, m_box = mirrored(img, CAMERAMAN_HEAD)
     assert estimator.estimate(m_img, m_box, K).direction[0] < -0.3
 
@@ -190,7 +192,9 @@ def test_backend_view_check_and_pickling(tmp_path):
     r = backend.view(photo_frame(tmp_path, "astronaut", photo("astronaut"), ASTRONAUT_HEAD), pose=no_pose)
     v = r.value
     assert r.source == "face"
-    assert v.dtype == np.float32 and v.shape == (3,) and v[2] < -0.8
+    assert v.dtype == np.float32
+    assert v.shape == (3,)
+    assert v[2] < -0.8
     with pytest.raises(FrameError, match="no nose and ears"):
         backend.view(photo_frame(tmp_path, "chelsea", photo("chelsea"), CHELSEA_BACKGROUND), pose=no_pose)
     clone = pickle.loads(pickle.dumps(backend))  # the interpreters stay behind and are rebuilt

@@ -37,14 +37,17 @@ def test_focal_rescale_formula():
 def test_astronaut_depths_are_plausible(estimator):
     img = photo("astronaut")
     r = estimator.predict(img, K_from_hfov(512, 512))
-    assert r.depth.shape == (512, 512) and r.depth.dtype == np.float32
+    assert r.depth.shape == (512, 512)
+    assert r.depth.dtype == np.float32
     assert r.crop == (0, 64, 512, 384)
     face = float(np.median(r.depth[ASTRONAUT_FACE]))
     backdrop = float(np.median(r.depth[ASTRONAUT_BACKDROP]))
     assert 0.8 < face < 2.5
     assert backdrop > face + 0.3
     np.testing.assert_array_equal(r.valid, r.depth > 0)
-    assert r.valid[64:448].all() and not r.valid[:64].any() and not r.valid[448:].any()
+    assert r.valid[64:448].all()
+    assert not r.valid[:64].any()
+    assert not r.valid[448:].any()
 
 
 def test_doubling_the_focal_doubles_the_depth(estimator):
@@ -61,7 +64,8 @@ def test_wide_image_keeps_the_resolution_and_zeros_outside_the_crop(estimator):
     img = photo("coffee")                                   # 600x400 (3:2)
     r = estimator.predict(img, K_from_hfov(600, 400))
     assert r.depth.shape == (400, 600)
-    assert (r.depth[:, :33] == 0).all() and (r.depth[:, 566:] == 0).all()
+    assert (r.depth[:, :33] == 0).all()
+    assert (r.depth[:, 566:] == 0).all()
     assert (r.depth[:, 33:566] > 0).all()
     np.testing.assert_array_equal(r.valid[:, 33:566], True)
 
@@ -71,7 +75,8 @@ def test_backend_depth_and_check(tmp_path, monkeypatch):
     backend = backend_class("depth", "fastdepth")({"threads": 1}, BackendContext(tmp_path))
     backend.check()
     dm = backend.depth(frame)
-    assert dm.depth.shape == (512, 512) and dm.valid.sum() == 512 * 384
+    assert dm.depth.shape == (512, 512)
+    assert dm.valid.sum() == 512 * 384
     assert 0.8 < float(np.median(dm.depth[ASTRONAUT_FACE])) < 2.5
     monkeypatch.setenv("GA3CE_MODELS", str(tmp_path / "models"))
     p = registry_models.file_path("fastdepth")

@@ -34,7 +34,9 @@ def test_angular_error():
 
 def test_scale_intrinsics():
     K2 = scale_intrinsics(K, 0.5, 0.5)
-    assert K2[0, 0] == 262.5 and K2[1, 2] == 119.75 and K2[2, 2] == 1
+    assert K2[0, 0] == 262.5
+    assert K2[1, 2] == 119.75
+    assert K2[2, 2] == 1
 
 
 def _scene(rng):
@@ -59,7 +61,8 @@ def test_object_positions_equals_numpy_median_label_image():
         assert res.area[row] == (labels == lab).sum()
         assert res.n_valid[row] == m.sum()
     res10 = object_positions(depth, K, labels, valid=valid, min_points=10)
-    assert res10.index.tolist() == [0, 2] and res10.n_dropped == 1
+    assert res10.index.tolist() == [0, 2]
+    assert res10.n_dropped == 1
 
 
 def test_object_positions_overlapping_stack_matches_label_path():
@@ -104,5 +107,6 @@ def test_object_positions_with_no_kept_mask_is_empty():
     labels[0, :3] = 0  # 3 pixels < min_points
     for masks in (labels, np.zeros((2, 8, 8), bool), np.full((8, 8), -1, np.int32)):
         res = object_positions(depth, K, masks, min_points=10)
-        assert res.xyz.shape == (0, 3) and res.index.size == 0
+        assert res.xyz.shape == (0, 3)
+        assert res.index.size == 0
     assert object_positions(depth, K, labels, min_points=10).n_dropped == 1

@@ -50,7 +50,8 @@ def test_cyclotorsion_has_no_roll_axis_angle_rolls():
     generic = v[:2000]
     generic = generic[(np.abs(generic[:, 0]) > 0.1) & (np.abs(generic[:, 1]) > 0.1)]
     roll = np.abs(axis_angle_rotation(generic)[:, 0, 1])
-    assert roll.min() > 1e-4 and np.median(roll) > 0.05
+    assert roll.min() > 1e-4
+    assert np.median(roll) > 0.05
     # the paper's closed form for one v: phi = atan2(-vx, vz), theta = atan2(vy, vz cos phi - vx sin phi)
     vx, vy, vz = 0.3, -0.4, np.sqrt(1 - 0.25)
     phi = np.arctan2(-vx, vz)
@@ -80,7 +81,8 @@ def test_pose_normalisation_and_scale_invariance():
     for k, shift in [(2.5, 0.0), (0.3, 1.7)]:  # scaling the pose changes t_pose and the head width together
         b = egocentric_transform(view.double(), k * pose + shift, objects.double(), head.double())
         np.testing.assert_allclose(b.pose, a.pose, atol=1e-9)
-    assert a.pose.shape == (6, len(GA3CE_JOINTS), 3) and a.joint_valid.all()
+    assert a.pose.shape == (6, len(GA3CE_JOINTS), 3)
+    assert a.joint_valid.all()
     np.testing.assert_allclose(a.view, torch.tensor([[0, 0, 1.0]]).expand(6, 3), atol=1e-12)
     # objects keep their distance from the head and their angle to v
     rel = objects.double() - head.double()[:, None]
@@ -96,8 +98,10 @@ def test_missing_pose_policy():
     pose[1, 28] = float("nan")        # head-width joint missing -> whole pose unusable
     pose[2, 7] = float("nan")         # one ankle missing -> only that joint
     ctx = egocentric_transform(view.double(), pose, objects.double(), head.double())
-    assert not ctx.joint_valid[0].any() and not ctx.joint_valid[1].any()
-    assert ctx.joint_valid[2].sum() == 14 and not ctx.joint_valid[2, GA3CE_JOINTS.index(7)]
+    assert not ctx.joint_valid[0].any()
+    assert not ctx.joint_valid[1].any()
+    assert ctx.joint_valid[2].sum() == 14
+    assert not ctx.joint_valid[2, GA3CE_JOINTS.index(7)]
     assert torch.isfinite(ctx.pose).all()
 
 
@@ -152,7 +156,8 @@ def test_zero_objects_and_missing_pose_are_valid_samples():
         no_obj.load_state_dict(m.state_dict())
         a = no_obj(view, pose, head, objects, mask)
         b = no_obj(view, pose, head, torch.randn_like(objects), torch.ones_like(mask))
-    assert torch.isfinite(g).all() and torch.isfinite(g0).all()
+    assert torch.isfinite(g).all()
+    assert torch.isfinite(g0).all()
     torch.testing.assert_close(g[2], g0[2], atol=1e-5, rtol=0)  # a frame with no objects == no objects at all
     torch.testing.assert_close(a, b)                               # the no-objects ablation ignores objects
     torch.testing.assert_close(a, g0, atol=1e-5, rtol=0)
@@ -193,7 +198,8 @@ def test_loss_gradient_finite_at_both_poles():
         g = (sign * gt).clone().requires_grad_(True)
         loss = angular_loss(g, gt)
         loss.backward()
-        assert torch.isfinite(loss) and torch.isfinite(g.grad).all()
+        assert torch.isfinite(loss)
+        assert torch.isfinite(g.grad).all()
         # through the model's residual normalisation too: g = normalise(g' + v)
         gp = torch.zeros(8, 3, dtype=torch.float64, requires_grad=True)
         out = torch.nn.functional.normalize(gp + sign * gt, dim=-1, eps=1e-9)

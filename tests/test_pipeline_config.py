@@ -16,7 +16,8 @@ def _base():
 @pytest.mark.parametrize("name", sorted(p.stem for p in PIPELINES_DIR.glob("*.yaml")))
 def test_bundled_pipelines_are_valid(name, tmp_path):
     conf = load_pipeline(name, tmp_path, check_files=False)
-    assert conf.name == name and conf.shard_size >= 1
+    assert conf.name == name
+    assert conf.shard_size >= 1
     assert set(conf.stages) == {"input", "depth", "objects", "head", "pose", "view"}
 
 
@@ -40,7 +41,8 @@ def test_defaults_are_filled_in_and_data_paths_resolved(tmp_path):
 def test_schema_errors_name_the_key(tmp_path, override, key, fragment):
     with pytest.raises(ConfigError) as e:
         load_pipeline(_base(), tmp_path, overrides=override, check_files=False)
-    assert f"  {key}: " in str(e.value) and fragment in str(e.value)
+    assert f"  {key}: " in str(e.value)
+    assert fragment in str(e.value)
 
 
 def test_missing_stage_and_bad_yaml(tmp_path):
@@ -60,8 +62,11 @@ def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
     with pytest.raises(ModelFileError) as e:
         run_pipeline("gafa", tmp_path, tmp_path / "s.zarr", progress=False)
     msg = str(e.value)
-    assert "stages.depth.params.model" in msg and "zoedepth.onnx does not exist" in msg and "export" in msg
-    assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "s.zarr.work").exists()
+    assert "stages.depth.params.model" in msg
+    assert "zoedepth.onnx does not exist" in msg
+    assert "export" in msg
+    assert not (tmp_path / "s.zarr").exists()
+    assert not (tmp_path / "s.zarr.work").exists()
 
 
 def test_planned_backend_is_not_available_yet(tmp_path):
@@ -95,8 +100,10 @@ def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
                      overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(tmp_path / "pose.npz")}}})
     st = open_store(tmp_path / "s.zarr")
     i = int(np.flatnonzero(st.frames["id"] == truth.frame_ids[0])[0])
-    assert s.counts.frames_kept == 12 and s.counts.degraded_by_stage == {"pose": 1}
+    assert s.counts.frames_kept == 12
+    assert s.counts.degraded_by_stage == {"pose": 1}
     assert np.isnan(st.frames["pose"][i]).all()
     j = int(np.flatnonzero(st.frames["id"] == ids[0])[0])
     np.testing.assert_allclose(st.frames["pose"][j], truth.get(ids[0], maps=False).pose, atol=1e-6)
-    assert st.failures["action"].tolist() == ["degraded"] and "not in" in st.failures["message"][0]
+    assert st.failures["action"].tolist() == ["degraded"]
+    assert "not in" in st.failures["message"][0]

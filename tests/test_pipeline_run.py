@@ -54,22 +54,33 @@ def reference(synth_world, tmp_path_factory):
 def test_store_contents_and_provenance(synth_world, reference):
     out, summary = reference
     s = open_store(out)
-    assert summary.counts.frames_total == 12 and summary.counts.frames_kept == len(s) == 12
-    assert summary.n_shards == 4 and not summary.counts.failures
-    assert set(s.split_names) == {"train", "val", "test"} and len(s.scene_names) == 3
+    assert summary.counts.frames_total == 12
+    assert summary.counts.frames_kept == len(s) == 12
+    assert summary.n_shards == 4
+    assert not summary.counts.failures
+    assert set(s.split_names) == {"train", "val", "test"}
+    assert len(s.scene_names) == 3
     assert s.frames["obj_count"].sum() == len(s.objects["xyz"]) == summary.counts.objects > 0
     np.testing.assert_array_equal(s.frames["obj_start"][1:], np.cumsum(s.frames["obj_count"])[:-1])
-    assert np.isfinite(s.frames["pose"]).all() and np.isfinite(s.frames["head_pos"]).all()
+    assert np.isfinite(s.frames["pose"]).all()
+    assert np.isfinite(s.frames["head_pos"]).all()
     np.testing.assert_allclose(np.linalg.norm(s.frames["view"], axis=1), 1, atol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(s.frames["gaze"], axis=1), 1, atol=1e-5)
     st = s.attrs["stages"]
-    assert st["pose"]["backend"] == "oracle" and st["pose"]["oracle"] and st["view"]["oracle"]
-    assert st["objects"]["backend"] == "geometric" and not st["objects"]["oracle"]
-    assert st["view"]["params"]["mean_error_deg"] == 20.0 and st["objects"]["params"]["stride"] == 1
-    assert s.attrs["dataset"]["name"] == "gfie" and len(s.attrs["pipeline"]["sha256"]) == 64
+    assert st["pose"]["backend"] == "oracle"
+    assert st["pose"]["oracle"]
+    assert st["view"]["oracle"]
+    assert st["objects"]["backend"] == "geometric"
+    assert not st["objects"]["oracle"]
+    assert st["view"]["params"]["mean_error_deg"] == 20.0
+    assert st["objects"]["params"]["stride"] == 1
+    assert s.attrs["dataset"]["name"] == "gfie"
+    assert len(s.attrs["pipeline"]["sha256"]) == 64
     assert s.attrs["summary"]["frames_kept"] == 12
     text = summary.format()
-    assert "12 kept of 12" in text and "objects" in text and "depth" in text
+    assert "12 kept of 12" in text
+    assert "objects" in text
+    assert "depth" in text
 
 
 def _cli_run(data, out, fault=None):
@@ -114,7 +125,8 @@ def test_changing_one_parameter_recomputes_only_that_stage_and_its_dependents(sy
     first = _run(synth_world, out, work_dir=work)
     assert all(first.computed_shards[s] == 4 for s in STAGES)
     again = _run(synth_world, out, work_dir=work)
-    assert sum(again.computed_shards.values()) == 0 and not again.store_written
+    assert sum(again.computed_shards.values()) == 0
+    assert not again.store_written
 
     v30 = _run(synth_world, out, ["stages.view.params.mean_error_deg=30"], work_dir=work)
     assert {s: v30.computed_shards[s] for s in STAGES} == {
@@ -191,19 +203,22 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
     broken = _corrupt(synth_world, data)
     summary = _run(data, tmp_path / "s.zarr")
     s, ref = open_store(tmp_path / "s.zarr"), open_store(reference[0])
-    assert summary.counts.frames_kept == 12 - 5 and summary.counts.frames_dropped == 5
+    assert summary.counts.frames_kept == 12 - 5
+    assert summary.counts.frames_dropped == 5
     f = s.failures
     got = {fid: (st, err, msg, act) for fid, st, err, msg, act in
            zip(f["frame_id"], f["stage"], f["error"], f["message"], f["action"])}
     assert len(f["frame_id"]) == 5
     for fid, kind in broken.items():
         if kind == "ok":
-            assert fid not in got and fid in s.frames["id"]
+            assert fid not in got
+            assert fid in s.frames["id"]
             continue
         stage, err, frag = EXPECT[kind]
         assert got[fid][:2] == (stage, err), (fid, got[fid])
         assert frag in got[fid][2], got[fid][2]
-        assert got[fid][3] == "dropped" and fid not in s.frames["id"]
+        assert got[fid][3] == "dropped"
+        assert fid not in s.frames["id"]
     assert summary.counts.dropped_by_stage == {"input": 2, "depth": 1, "head": 2}
     # the other frames are exactly as in the clean run
     keep = np.isin(ref.frames["id"], s.frames["id"])
@@ -233,9 +248,12 @@ def test_nan_intrinsics_drop_every_frame_with_a_clear_message(synth_world, tmp_p
     np.save(data / "CameraKinect.npy", np.array([np.nan, 140.0, 80.0, 60.0]))
     summary = _run(data, tmp_path / "s.zarr", ["run.shard_size=12"])
     s = open_store(tmp_path / "s.zarr")
-    assert summary.counts.frames_kept == 0 and len(s) == 0 and len(s.failures["frame_id"]) == 12
+    assert summary.counts.frames_kept == 0
+    assert len(s) == 0
+    assert len(s.failures["frame_id"]) == 12
     assert set(s.failures["stage"]) == {"input"}
-    assert "intrinsics K" in s.failures["message"][0] and "fx, fy > 0" in s.failures["message"][0]
+    assert "intrinsics K" in s.failures["message"][0]
+    assert "fx, fy > 0" in s.failures["message"][0]
 
 
 def test_failed_pose_or_objects_degrade_the_frame_instead_of_dropping_it():
@@ -257,10 +275,13 @@ def test_failed_pose_or_objects_degrade_the_frame_instead_of_dropping_it():
     c = FinalizeCounts()
     fr, obj, fails = shard_block(shard, e, c)
     assert fr["id"].tolist() == ["f0", "f1"]                      # both kept
-    assert fr["obj_count"].tolist() == [2, 0] and len(obj["xyz"]) == 2
-    assert np.isnan(fr["pose"][0]).all() and (fr["pose"][1] == 0).all()
+    assert fr["obj_count"].tolist() == [2, 0]
+    assert len(obj["xyz"]) == 2
+    assert np.isnan(fr["pose"][0]).all()
+    assert (fr["pose"][1] == 0).all()
     assert sorted((r[1], r[4]) for r in fails) == [("objects", "degraded"), ("pose", "degraded")]
-    assert c.degraded_by_stage == {"objects": 1, "pose": 1} and not c.dropped_by_stage
+    assert c.degraded_by_stage == {"objects": 1, "pose": 1}
+    assert not c.dropped_by_stage
 
 
 def test_info_show_export_commands(synth_world, reference, tmp_path):
@@ -268,7 +289,9 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
     r = CliRunner()
     res = r.invoke(cli, ["info", str(out)])
     assert res.exit_code == 0, res.output
-    assert "frames       12" in res.output and "splits" in res.output and "[ORACLE" in res.output
+    assert "frames       12" in res.output
+    assert "splits" in res.output
+    assert "[ORACLE" in res.output
     fid = open_store(out).frames["id"][0]
     png = tmp_path / "f.png"
     res = r.invoke(cli, ["show", str(out), fid, "--out", str(png)])
@@ -276,7 +299,8 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
     import cv2
 
     img = cv2.imread(str(png))
-    assert img is not None and min(img.shape[:2]) >= 480
+    assert img is not None
+    assert min(img.shape[:2]) >= 480
     ply = tmp_path / "f.ply"
     res = r.invoke(cli, ["show", str(out), fid, "--out", str(ply)])
     assert res.exit_code == 0, res.output
@@ -295,4 +319,5 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
                 np.testing.assert_array_equal(np.asarray(b), a, err_msg=f"{group}/{name}")
         assert f["frames/scene"].attrs["names"].startswith("[")
     res = r.invoke(cli, ["show", str(out), "no/such/frame", "--out", str(png)])
-    assert res.exit_code != 0 and "not in" in str(res.exception)
+    assert res.exit_code != 0
+    assert "not in" in str(res.exception)

@@ -38,14 +38,16 @@ def checkpoint(tmp_path_factory):
 
 def test_intrinsics_from_a_field_of_view():
     K = intrinsics((640, 480), fov=90)
-    assert K[0, 0] == pytest.approx(320) and K[1, 1] == pytest.approx(320)
+    assert K[0, 0] == pytest.approx(320)
+    assert K[1, 1] == pytest.approx(320)
     assert (K[0, 2], K[1, 2]) == (319.5, 239.5)
 
 
 def test_yaw_pitch_convention():
     assert Prediction.yaw_pitch(np.array([0, 0, -1.0])) == (0.0, 0.0)           # at the camera
     yaw, pitch = Prediction.yaw_pitch(np.array([1, 0, -1.0]) / np.sqrt(2))
-    assert yaw == pytest.approx(45) and pitch == pytest.approx(0)                 # toward the image's right
+    assert yaw == pytest.approx(45)  # toward the image's right
+    assert pitch == pytest.approx(0)
     assert Prediction.yaw_pitch(np.array([0, -1, 0.0]))[1] == pytest.approx(90)   # up
 
 
@@ -62,7 +64,8 @@ def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
     x1, y1, x2, y2 = HEAD
     u = r.frame.K[0, 0] * r.head_pos[0] / r.head_pos[2] + r.frame.K[0, 2]
     v = r.frame.K[1, 1] * r.head_pos[1] / r.head_pos[2] + r.frame.K[1, 2]
-    assert x1 < u < x2 and y1 < v < y2                        # t_object projects into the head box
+    assert x1 < u < x2  # t_object projects into the head box
+    assert y1 < v < y2
 
 
 def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, checkpoint, tmp_path):
@@ -76,7 +79,8 @@ def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, ch
     assert d["sources"] == {"view": "face"}
     assert len(d["gaze_yaw_pitch_deg"]) == 2
     img = np.asarray(Image.open(out))
-    assert img.shape[0] >= 480 and img.shape[2] == 3
+    assert img.shape[0] >= 480
+    assert img.shape[2] == 3
 
 
 def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):

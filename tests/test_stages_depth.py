@@ -60,7 +60,8 @@ def test_completion_prefers_the_nearer_surface_at_edges():
 def test_range_limits_and_all_invalid():
     raw = np.full((H, W), 12.0, np.float32)  # beyond max_depth
     dm = complete_depth(raw, CompletionParams(max_depth=10.0))
-    assert not dm.valid.any() and not dm.depth.any()
+    assert not dm.valid.any()
+    assert not dm.depth.any()
 
 
 def _frame(tmp_path, depth, size=(W, H)):

@@ -33,7 +33,8 @@ def test_store_round_trip_csr(tmp_path):
                        "message": ["no valid depth"], "action": ["dropped"]})
     w.close(ATTRS)
     s = open_store(tmp_path / "s.zarr")
-    assert len(s) == 5010 and s.attrs["schema_version"] == SCHEMA_VERSION
+    assert len(s) == 5010
+    assert s.attrs["schema_version"] == SCHEMA_VERSION
     all_xyz = np.concatenate([o["xyz"] for _, o in blocks]).astype(np.float32)
     np.testing.assert_array_equal(s.objects["xyz"], all_xyz)
     i = 7 + 123  # a frame of the second block

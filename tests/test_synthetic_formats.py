@@ -45,11 +45,13 @@ def datasets(tmp_path_factory):
 def test_assign_splits():
     for n in range(1, 30):
         s = assign_splits(n, seed=3)
-        assert len(s) == n and s == assign_splits(n, seed=3)
+        assert len(s) == n
+        assert s == assign_splits(n, seed=3)
         if n >= 3:
             assert {"train", "val", "test"} <= set(s)
             assert abs(s.count("train") / n - 0.7) <= 0.2 + 1.0 / n
-    assert assign_splits(1, 0) == ["train"] and sorted(assign_splits(2, 0)) == ["test", "train"]
+    assert assign_splits(1, 0) == ["train"]
+    assert sorted(assign_splits(2, 0)) == ["test", "train"]
 
 
 def test_gfie_layout_and_annotations(datasets):
@@ -70,8 +72,10 @@ def test_gfie_layout_and_annotations(datasets):
                 assert t.split == split
                 assert (root / "rgb" / f"{fid}.jpg").is_file()
                 d = np.load(root / "depth" / f"{fid}.npy", allow_pickle=False)
-                assert d.dtype == np.float32 and d.shape == (H, W)
-                assert np.isnan(d).any() and np.nanmax(d) < 10  # NaN holes, metres
+                assert d.dtype == np.float32
+                assert d.shape == (H, W)
+                assert np.isnan(d).any()  # NaN holes, metres
+                assert np.nanmax(d) < 10
                 box = [float(r[c]) for c in ("h_x_min", "h_y_min", "h_x_max", "h_y_max")]
                 np.testing.assert_allclose(box, t.head_box, atol=1e-4)
                 np.testing.assert_allclose([float(r["eye_u"]), float(r["eye_v"])], project(t.eye, t.K), atol=1e-4)
@@ -85,7 +89,8 @@ def test_gfie_layout_and_annotations(datasets):
 def test_cad120_layout_and_annotations(datasets):
     root = datasets["cad120"]
     cols, rows = _rows(root / "annotation.txt")
-    assert tuple(cols) == cad120.COLUMNS and len(rows) == 2 * 5
+    assert tuple(cols) == cad120.COLUMNS
+    assert len(rows) == 2 * 5
     assert {r["dataset_id"] for r in rows} == {"D1S1A001", "D1S2A002"}
     assert sorted({int(r["frame_index"]) for r in rows}) == [1, 2, 3, 4, 5]  # from 1, not padded
     with TruthReader(root) as tr:
@@ -95,7 +100,10 @@ def test_cad120_layout_and_annotations(datasets):
             rgb = cv2.imread(str(root / "rgb" / r["dataset_id"] / f"RGB_{r['frame_index']}.png"))
             assert rgb.shape == (H, W, 3)
             d = cv2.imread(str(root / "depth" / r["dataset_id"] / f"Depth_{r['frame_index']}.png"), cv2.IMREAD_UNCHANGED)
-            assert d.dtype == np.uint16 and d.shape == (H, W) and (d == 0).any() and d.max() < 10000  # mm
+            assert d.dtype == np.uint16  # mm
+            assert d.shape == (H, W)
+            assert (d == 0).any()
+            assert d.max() < 10000
             x, y, w, h = (float(r[c]) for c in ("x_initial", "y_initial", "w", "h"))
             np.testing.assert_allclose([x * W, y * H, (x + w) * W, (y + h) * H], t.head_box, atol=1e-4)
             g2 = project(t.gaze_target, t.K) / [W, H]
@@ -107,7 +115,8 @@ def test_cad120_layout_and_annotations(datasets):
 def test_gafa_layout_pickles_and_cameras(datasets):
     root = datasets["gafa"]
     intr = np.load(root / "intrinsics.npz", allow_pickle=False)
-    assert intr["cam_mat"].shape == (3, 3) and intr["dist_coeffs"].shape == (1, 12)
+    assert intr["cam_mat"].shape == (3, 3)
+    assert intr["dist_coeffs"].shape == (1, 12)
     real = np.load(Path(__file__).resolve().parents[2] / "shared/data/gafa/intrinsics.npz")["cam_mat"] \
         if (Path(__file__).resolve().parents[2] / "shared/data/gafa/intrinsics.npz").is_file() else None
     if real is not None:  # the real wide-angle K, scaled to our width
@@ -125,16 +134,19 @@ def test_gafa_layout_pickles_and_cameras(datasets):
                 assert set(d) == {"keypoints2d", "gaze", "head", "chest", "R_cam2w", "t_cam2w"}
                 kp = d["keypoints2d"]
                 assert kp.shape == (5, 25, 3)
-                assert set(d["gaze"]) == {"direction"} and set(d["head"]) == {"direction", "position"}
+                assert set(d["gaze"]) == {"direction"}
+                assert set(d["head"]) == {"direction", "position"}
                 assert set(d["chest"]) == {"direction", "position"}
                 for k in ("gaze", "head", "chest"):
                     assert d[k]["direction"].shape == (5, 3)
                     np.testing.assert_allclose(np.linalg.norm(d[k]["direction"], axis=1), 1, atol=1e-5)
                 R, t = d["R_cam2w"], d["t_cam2w"]
-                assert R.shape == (3, 3) and t.shape == (3,)
+                assert R.shape == (3, 3)
+                assert t.shape == (3,)
                 np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
                 cam = p.stem
-                assert cam.startswith("Camera") and cam.endswith("_0")
+                assert cam.startswith("Camera")
+                assert cam.endswith("_0")
                 frames = sorted((root / session / cam).glob("*.jpg"))
                 assert [f.name for f in frames] == [f"{j:06d}.jpg" for j in range(5)]
                 for j in range(5):
@@ -157,16 +169,21 @@ def test_gafa_layout_pickles_and_cameras(datasets):
 def test_truth_layout(datasets):
     root = datasets["gfie"]
     with h5py.File(root / "truth.h5", "r") as f:
-        assert f["depth"].chunks == (1, H, W) and f["depth"].compression == "lzf"
-        assert f["instance"].dtype == np.int16 and f["instance"].chunks == (1, H, W)
+        assert f["depth"].chunks == (1, H, W)
+        assert f["depth"].compression == "lzf"
+        assert f["instance"].dtype == np.int16
+        assert f["instance"].chunks == (1, H, W)
         n = f["frames/frame_id"].shape[0]
         assert f["frames/pose"].shape == (n, 30, 3)
-        assert f["frames/obj_start"].shape == (n,) and f["objects/centroid"].shape[1] == 3
+        assert f["frames/obj_start"].shape == (n,)
+        assert f["objects/centroid"].shape[1] == 3
     with TruthReader(root) as tr:
         fid = tr.frame_ids[3]
         t = tr.get(fid)
-        assert tr.index(fid) == 3 and t.frame_id == fid
-        assert t.depth.shape == (H, W) and t.instance.shape == (H, W)
+        assert tr.index(fid) == 3
+        assert t.frame_id == fid
+        assert t.depth.shape == (H, W)
+        assert t.instance.shape == (H, W)
         ob = t.objects
         # visible pixel counts are the instance map's
         np.testing.assert_array_equal(ob.pixels, np.bincount(t.instance[t.instance >= 0], minlength=len(ob.instance)))
@@ -189,7 +206,8 @@ def test_same_seed_gives_identical_files(tmp_path, fmt):
         generate(fmt, tmp_path / name, scenes=3, frames_per_scene=3, seed=seed, width=96,
                  height=72 if fmt == "gfie" else None, progress=False)
     a, b, c = (_digest(tmp_path / n) for n in "abc")
-    assert len(a) > 5 and a == b
+    assert len(a) > 5
+    assert a == b
     assert a != c
     with TruthReader(tmp_path / "a") as ta, TruthReader(tmp_path / "b") as tb:
         for name in ("pose", "gaze", "gaze_target", "head_dir", "K"):
@@ -210,7 +228,8 @@ def test_yaml_config_overrides(tmp_path):
     y = tmp_path / "world.yaml"
     y.write_text("objects:\n  count: [15, 20]\n  clustering: 0.2\ngaze:\n  target_mix: {object: 1.0}\n")
     cfg = load_config("gafa", y)
-    assert cfg.objects.count == (15, 20) and cfg.objects.clustering == 0.2
+    assert cfg.objects.count == (15, 20)
+    assert cfg.objects.clustering == 0.2
     assert cfg.gaze.target_mix == {"object": 1.0}
     assert cfg.camera.count == (2, 4)  # the format's defaults stay
     y.write_text("objects:\n  colour: red\n")
@@ -232,7 +251,8 @@ def test_synth_command(tmp_path):
     r = CliRunner().invoke(synth, ["--format", "cad120", "--out", str(out), "--scenes", "2", "--frames-per-scene", "2",
                                    "--width", "96", "--height", "72", "--config", str(y), "--quiet"])
     assert r.exit_code == 0, r.output
-    assert "wrote 4 cad120 frames" in r.output and "objects_per_frame" in r.output
+    assert "wrote 4 cad120 frames" in r.output
+    assert "objects_per_frame" in r.output
     _, rows = _rows(out / "annotation.txt")
     assert len(rows) == 4
     with TruthReader(out) as tr:

@@ -44,7 +44,9 @@ def test_face_joints_lie_on_the_head_ellipsoid(gfie_world):
         local = (tr.pose[i, [25, 26, 27, 28, 29]] - c) @ R / ax
         np.testing.assert_allclose(np.linalg.norm(local, axis=1), 1.0, atol=1e-6)
         # eyes in front, ears at the sides, head top above: oriented by the head direction
-        assert (local[[0, 2], 0] > 0.8).all() and local[1, 1] > 0.9 and local[3, 1] < -0.9
+        assert (local[[0, 2], 0] > 0.8).all()
+        assert local[1, 1] > 0.9
+        assert local[3, 1] < -0.9
         np.testing.assert_allclose(R[:, 0], tr.head_dir[i], atol=1e-9)
     # nose to right ear (GA3CE's head width pair) about 0.14 m at 1.75 m
     hw = np.linalg.norm(tr.pose[:, 24] - tr.pose[:, 28], axis=1) / tr.person_height * 1.75
@@ -58,8 +60,11 @@ def test_projected_truth_is_the_written_2d(gfie_world):
     # head box contains the projected eyes and lies in the image
     hb = tr.head_box
     e2 = project(tr.pose[:, [25, 27]], tr.K[0])
-    assert (e2[..., 0] >= hb[:, None, 0] - 1e-6).all() and (e2[..., 0] <= hb[:, None, 2] + 1e-6).all()
-    assert (hb[:, :2] >= 0).all() and (hb[:, 2] <= W - 1).all() and (hb[:, 3] <= H - 1).all()
+    assert (e2[..., 0] >= hb[:, None, 0] - 1e-6).all()
+    assert (e2[..., 0] <= hb[:, None, 2] + 1e-6).all()
+    assert (hb[:, :2] >= 0).all()
+    assert (hb[:, 2] <= W - 1).all()
+    assert (hb[:, 3] <= H - 1).all()
 
 
 def test_object_targets_are_on_the_rendered_surface(gfie_world):
@@ -82,7 +87,8 @@ def test_object_targets_are_on_the_rendered_surface(gfie_world):
             assert np.linalg.norm(q - tr.gaze_target[i]) < tol + 4 * depth_sigma(z, DepthConfig())
             n_sensor += 1
         checked += 1
-    assert checked >= 10 and n_sensor >= 5
+    assert checked >= 10
+    assert n_sensor >= 5
 
 
 def test_instance_masks_back_project_onto_their_meshes():
@@ -120,7 +126,8 @@ def test_cameras_have_no_roll_and_see_the_head(gfie_world):
     d = np.linalg.norm(tr.cam_center[:, :2] - (tr.pose[:, 15] @ tr.R_w2c[0] * 0)[:, :2], axis=1)
     assert d.shape[0] == len(tr)
     dist = np.linalg.norm(tr.head_center, axis=1)
-    assert (dist > 1.0).all() and (dist < 7.0).all()
+    assert (dist > 1.0).all()
+    assert (dist < 7.0).all()
     cfg = load_config("gfie", overrides={"camera": {"roll": 10.0}})
     K = intrinsics(cfg.camera, W, H)
     rolls = [abs(Scene("gfie", cfg, K, W, H, np.random.default_rng(s)).cameras[0].R[0, 2]) for s in range(3)]
@@ -140,9 +147,11 @@ def test_eye_in_head_offset_follows_the_knobs(tmp_path):
     off, _ = offsets({"gaze": {"head_follow": [1.0, 1.0], "head_jitter": 0.0, "head_smoothing": 0.0}})
     # the head points at the target, but for turns beyond the neck's range (targets far to the
     # side of a walking person, or at the feet)
-    assert np.mean(off < 1.0) > 0.8 and np.median(off) < 0.5
+    assert np.mean(off < 1.0) > 0.8
+    assert np.median(off) < 0.5
     off, turn = offsets({"gaze": {"head_follow": [0.2, 0.3], "eye_offset_max": 40.0}})
-    assert np.mean(off > turn) > 0.5 and off.max() > 15
+    assert np.mean(off > turn) > 0.5
+    assert off.max() > 15
 
 
 def test_world_statistics(gfie_world):

@@ -50,16 +50,20 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
     train(_cfg(store, tmp_path / "d", view_noise="on"), resume=True)
     assert _same(_weights(a), _weights(d))
     hist = (a / "history.csv").read_text().splitlines()
-    assert len(hist) == 3 and hist[0].startswith("epoch,step,lr,train_loss,train_mae,val_mae")
-    assert (a / "curves.png").stat().st_size > 1000 and (a / "best.pt").exists()
+    assert len(hist) == 3
+    assert hist[0].startswith("epoch,step,lr,train_loss,train_mae,val_mae")
+    assert (a / "curves.png").stat().st_size > 1000
+    assert (a / "best.pt").exists()
     cfg = json.loads((a / "config.json").read_text())
-    assert cfg["view_noise_resolved"] is True and cfg["lr"] == 3e-4
+    assert cfg["view_noise_resolved"] is True
+    assert cfg["lr"] == 3e-4
 
 
 def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
     run = train(_cfg(store, tmp_path / "r", epochs=1))
     ck = torch.load(run / "last.pt", weights_only=True)    # tensors and plain types only
-    assert ck["config"]["model"]["rotation"] == "cyclotorsion" and "optimizer" in ck
+    assert ck["config"]["model"]["rotation"] == "cyclotorsion"
+    assert "optimizer" in ck
     assert "optimizer" not in torch.load(run / "best.pt", weights_only=True)
     with pytest.raises(CheckpointError, match="--resume"):
         train(_cfg(store, tmp_path / "r", epochs=1))
@@ -118,7 +122,11 @@ def test_ablate_table(store, tmp_path):
     assert [r["name"] for r in s["rows"]] == ["appearance", "no-objects", "no-pose", "full"]
     assert s["rows"][0]["ratio"] == pytest.approx(1.0, abs=1e-5)
     t = s["table"]
-    assert "Table 4" in t and "Table 5" in t and "19.40" in t and "13.10" in t and "11.10" in t
+    assert "Table 4" in t
+    assert "Table 5" in t
+    assert "19.40" in t
+    assert "13.10" in t
+    assert "11.10" in t
     assert ("the full model is best" in t) == s["full_best"]
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
@@ -136,15 +144,19 @@ def test_cli_train_eval(store, tmp_path):
                               "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
     assert res.exit_code == 0, res.output
     ck = load_checkpoint(out / "best.pt")
-    assert ck["config"]["model"]["rotation"] == "none" and ck["config"]["model"]["encoding"] == "standard"
+    assert ck["config"]["model"]["rotation"] == "none"
+    assert ck["config"]["model"]["encoding"] == "standard"
     assert ck["config"]["model"]["cone_bias_scale"] == 2
     res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(out / "best.pt"), "--cdf", "none"])
     assert res.exit_code == 0, res.output
-    assert "GA3CE (model)" in res.output and "head direction from pose" in res.output
+    assert "GA3CE (model)" in res.output
+    assert "head direction from pose" in res.output
     res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--ablation", "no-ga3ce", "--rotation", "axis_angle"])
-    assert res.exit_code != 0 and "--ablation no-ga3ce" in res.output
+    assert res.exit_code != 0
+    assert "--ablation no-ga3ce" in res.output
     res = runner.invoke(cli, ["ablate", "--help"])
-    assert res.exit_code == 0 and "no-cyclotorsion" in res.output
+    assert res.exit_code == 0
+    assert "no-cyclotorsion" in res.output
 
 
 def test_cli_recipe_options_are_the_config_fields():
@@ -157,4 +169,6 @@ def test_cli_recipe_options_are_the_config_fields():
             if hasattr(d, name) and name not in ("store", "out", "n_max"):   # n_max: batch | auto | N
                 assert p.default == getattr(d, name), name
     res = CliRunner().invoke(cli, ["train", "--help"])
-    assert "--no-bucket" in res.output and "--no-progress" in res.output and "no-ga3ce" in res.output
+    assert "--no-bucket" in res.output
+    assert "--no-progress" in res.output
+    assert "no-ga3ce" in res.output

@@ -33,14 +33,16 @@ def test_dataset_splits_and_samples(toy):
     d = ds["train"]
     s = d[5]
     row = int(s["index"])
-    assert s["pose"].shape == (30, 3) and s["objects"].shape == (int(toy.frames["obj_count"][row]), 3)
+    assert s["pose"].shape == (30, 3)
+    assert s["objects"].shape == (int(toy.frames["obj_count"][row]), 3)
     np.testing.assert_allclose(s["gaze"], toy.frames["gaze"][row])
     # the frame's own objects, largest mask first
     raw = toy.objects_of(row)
     area = toy.objects["area"][toy.object_slice(row)]
     np.testing.assert_array_equal(s["objects"].numpy(), raw[np.argsort(-area, kind="stable")])
     assert np.all(np.diff(s["area"].numpy()) <= 0)
-    assert (d.obj_count == 0).any() and np.isnan(d.pose).all(axis=(1, 2)).any()  # the fixture has both cases
+    assert (d.obj_count == 0).any()  # the fixture has both cases
+    assert np.isnan(d.pose).all(axis=(1, 2)).any()
 
 
 def test_dataset_drops_unusable_frames_and_objects(tmp_path):
@@ -57,8 +59,11 @@ def test_dataset_drops_unusable_frames_and_objects(tmp_path):
     w.close(ATTRS)
     st = open_store(tmp_path / "s.zarr")
     ds = ContextDataset(st, "train")
-    assert len(ds) == 38 and ds.n_no_gaze == 1 and ds.n_no_view == 1
-    assert 0 not in ds.rows and 1 not in ds.rows
+    assert len(ds) == 38
+    assert ds.n_no_gaze == 1
+    assert ds.n_no_view == 1
+    assert 0 not in ds.rows
+    assert 1 not in ds.rows
     assert len(ContextDataset(st, "train", require_gaze=False)) == 39
     pos = {int(r): i for i, r in enumerate(ds.rows)}
     assert ds.obj_count[pos[2]] == 0
@@ -116,7 +121,8 @@ def test_bucket_sampler():
     counts = np.random.default_rng(0).integers(0, 60, 1000)
     s = BucketBatchSampler(counts, 32, seed=4)
     b0 = s.batches()
-    assert np.array_equal(np.sort(np.concatenate(b0)), np.arange(1000)) and len(b0) == len(s) == 32
+    assert np.array_equal(np.sort(np.concatenate(b0)), np.arange(1000))
+    assert len(b0) == len(s) == 32
     assert all(np.array_equal(x, y) for x, y in zip(b0, BucketBatchSampler(counts, 32, seed=4).batches()))
     s.set_epoch(1)
     assert not all(np.array_equal(x, y) for x, y in zip(b0, s.batches()))
@@ -142,16 +148,21 @@ def test_view_noise_shift():
     g = torch.Generator().manual_seed(1)
     out = view_noise(v, g)
     ang = angular_error_deg(out.numpy(), v.numpy())
-    assert 19.0 < ang.mean() < 25.0 and ang.max() < 61.0     # about 22 degrees (docs/paper.md)
+    assert 19.0 < ang.mean() < 25.0  # about 22 degrees (docs/paper.md)
+    assert ang.max() < 61.0
     np.testing.assert_allclose(out.norm(dim=-1).numpy(), 1.0, atol=1e-6)
     torch.testing.assert_close(view_noise(v, torch.Generator().manual_seed(1)), out)
 
 
 def test_warmup_cosine_schedule():
     lrs = [warmup_cosine_lr(s, 100, 20, 1.0) for s in range(100)]
-    assert lrs[0] == pytest.approx(0.05) and lrs[19] == pytest.approx(1.0) and lrs[20] == pytest.approx(1.0)
-    assert np.all(np.diff(lrs[:20]) > 0) and np.all(np.diff(lrs[20:]) < 0)
-    assert lrs[60] == pytest.approx(0.5, abs=1e-9) and lrs[-1] < 1e-3
+    assert lrs[0] == pytest.approx(0.05)
+    assert lrs[19] == pytest.approx(1.0)
+    assert lrs[20] == pytest.approx(1.0)
+    assert np.all(np.diff(lrs[:20]) > 0)
+    assert np.all(np.diff(lrs[20:]) < 0)
+    assert lrs[60] == pytest.approx(0.5, abs=1e-9)
+    assert lrs[-1] < 1e-3
 
 
 def test_baselines():
@@ -186,6 +197,8 @@ def test_metrics():
     r = summarize(pred, gt, np.array([0, 0, 1]), ["a", "b"])
     assert r["mae3d"] == pytest.approx(30, abs=1e-5)
     assert r["mae2d"] == pytest.approx(45, abs=1e-5)
-    assert r["front"]["n"] == 2 and r["front"]["mae3d"] == pytest.approx(45, abs=1e-5)  # z <= 0 is front
-    assert r["back"]["n"] == 1 and r["back"]["mae3d"] == pytest.approx(0, abs=1e-5)
+    assert r["front"]["n"] == 2  # z <= 0 is front
+    assert r["front"]["mae3d"] == pytest.approx(45, abs=1e-5)
+    assert r["back"]["n"] == 1
+    assert r["back"]["mae3d"] == pytest.approx(0, abs=1e-5)
     assert r["per_scene"]["a"] == {"n": 2, "mae3d": pytest.approx(45, abs=1e-5)}
