@@ -109,11 +109,7 @@ def test_sigkill_then_same_command_resumes_to_an_identical_store(synth_world, re
 def test_sigkill_while_replacing_an_older_store(synth_world, reference, tmp_path):
     out = tmp_path / "s.zarr"
     _run(synth_world, out, ["stages.view.params.mean_error_deg=30"])  # an older store at --out
-    env = {**os.environ, "GA3CE_FAULT": "finalize.aside:1"}
-    cmd = [sys.executable, "-m", "ga3ce_prep.cli", "run", "-p", PIPE, "-d", str(synth_world), "-o", str(out), "-q"]
-    for o in (*SMALL, *SHARD):
-        cmd += ["--set", o]
-    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    p = _cli_run(synth_world, out, "finalize.aside:1")
     assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
     _run(synth_world, out)
     assert_same_store(out, reference[0])
