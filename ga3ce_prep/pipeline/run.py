@@ -207,13 +207,15 @@ def _run_key(conf: PipelineConfig, data_root: Path, shards: list[Shard]) -> str:
 
 def provenance(conf: PipelineConfig, data_root: Path, **run: Any) -> dict[str, Any]:
     """The store's root attributes (schemas/store.schema.json): dataset, pipeline, per-stage backend,
-    parameters and model SHA-256, package version, run settings."""
+    parameters, model SHA-256 and what the backend adds (`Backend.provenance`), package version,
+    run settings."""
     stages = {}
     for stage, sc in conf.stages.items():
+        extra = sc.make(data_root).provenance()
+        models = {str(p): file_sha256(p) for p in sc.model_files.values()} | extra.pop("models", {})
         stages[stage] = {"backend": sc.backend,
                          "params": {k: (str(v) if isinstance(v, Path) else v) for k, v in sc.params.items()},
-                         "models": {str(p): file_sha256(p) for p in sc.model_files.values()},
-                         "oracle": sc.backend == "oracle"}
+                         "models": models, "oracle": sc.backend == "oracle", **extra}
     return {"package_version": __version__,
             "dataset": {"name": conf.dataset_format, "root": str(data_root), "options": conf.dataset_options},
             "pipeline": {"file": conf.file, "sha256": conf.sha256, "name": conf.name, "config": conf.config},

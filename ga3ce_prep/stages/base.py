@@ -105,6 +105,12 @@ class Backend:
         """Import heavy libraries / load models ahead of the first frame (dask workers call it once
         before the graph runs). Default: nothing."""
 
+    def provenance(self) -> dict[str, Any]:
+        """What the backend adds to its stage's store provenance (run on the driver, after check()):
+        "models" {path: SHA-256} of model files that are not file parameters (e.g. the registry's),
+        and anything it derives from its files (objects/mobilesam's "mask_mode"). Default: nothing."""
+        return {}
+
 
 class ProcessEstimator:
     """Mixin for a backend whose model runs in a native session (ONNX Runtime, LiteRT): one

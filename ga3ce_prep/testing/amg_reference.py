@@ -1,6 +1,8 @@
 """A straightforward implementation of the automatic mask generator in the reference's order of
 operations on the official ONNX files: one official-decoder call per grid point (masks upsampled to
-full resolution inside the graph), every filter on the full-resolution logits, box NMS.
+full resolution inside the graph), every filter on the full-resolution logits, box NMS. The
+candidates are the decoder's (`candidate_tokens`): the multimask outputs 1..3, or a single-mask
+export's one mask per point.
 
 It is slow on purpose (it is what `MobileSamSegmenter` is checked against in the tests and timed
 against in `make bench-objects`); use MobileSamSegmenter for real work.
@@ -40,6 +42,8 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
     with timer("encoder"):
         emb = encoder.embed(rgb)
     points = amg.build_point_grid(options.points_per_side) * np.array([w, h], np.float64)
+    tokens = np.asarray(decoder.candidate_tokens)                # (k,)
+    k = tokens.size
     masks, scores, stab, boxes, pts, cands = [], [], [], [], [], []
     for b0 in range(0, len(points), options.points_per_batch):
         batch = points[b0:b0 + options.points_per_batch]
@@ -48,13 +52,13 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
             for p in transform_coords(batch, (h, w)):       # one call per point, as the official export needs
                 m, q = decoder(emb, np.array([[p, [0.0, 0.0]]]), np.array([[1.0, -1.0]]), (h, w),
                                outputs=("masks", "iou_predictions"))
-                full.append(m[0, 1:4])                       # multimask outputs: tokens 1..3
-                iou.append(q[0, 1:4])
+                full.append(m[0, tokens])                    # the candidates: tokens 1..3, or the one mask
+                iou.append(q[0, tokens])
         with timer("filters"):
-            logits = np.concatenate(full)                    # (3B, H, W), point-major
+            logits = np.concatenate(full)                    # (kB, H, W), point-major
             iou = np.concatenate(iou).astype(np.float32)
-            point_of = np.repeat(np.arange(b0, b0 + len(batch)), 3)
-            cands.append(np.stack([point_of, np.tile([1, 2, 3], len(batch)), iou], axis=1))
+            point_of = np.repeat(np.arange(b0, b0 + len(batch)), k)
+            cands.append(np.stack([point_of, np.tile(tokens, len(batch)), iou], axis=1))
             keep = iou > np.float32(options.pred_iou_thresh) if options.pred_iou_thresh > 0 \
                 else np.ones(len(iou), bool)
             logits, iou, point_of = logits[keep], iou[keep], point_of[keep]

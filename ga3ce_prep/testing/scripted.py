@@ -7,11 +7,15 @@
   point picks the label under it; mask tokens 0-2 are that label's region (predicted IoU 0.97,
   0.97, 0.92 for an object, 0.2 for the background label 0) and token 3 the whole frame (IoU 0.6).
   The low-res logits are +-8, postprocessed to `orig_im_size` exactly as the official export does.
+  `single_mask=True`: one mask per prompt, as SAM's `--return-single-mask` export of one click
+  (the best of tokens 1..3: token 1).
+- `renamed(model, names)`: a copy with inputs/outputs renamed (exports that name tensors their own way).
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import onnx
 from onnx import TensorProto
 
 from ..estimators.amg import preprocess_shape
@@ -56,10 +60,11 @@ def low_res_labels(labels: np.ndarray) -> np.ndarray:
 
 
 def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input: str | None = None,
-                     mask_input_size: int = 256):
+                     mask_input_size: int = 256, single_mask: bool = False):
     """A decoder ModelProto with the official inputs and outputs whose masks come from `labels`
     ((H, W) int, 0 = background). batch_dynamic: a symbolic batch axis on point_coords/labels (else
-    fixed 1 as the official export). drop_input / mask_input_size make contract-breaking files."""
+    fixed 1 as the official export). drop_input / mask_input_size make contract-breaking files.
+    single_mask: outputs [B, 1, ...] (token 1), as a single-mask export answers one click."""
     lab = low_res_labels(labels)
     g = GraphBuilder("scripted_decoder")
     batch = "batch" if batch_dynamic else 1
@@ -94,10 +99,22 @@ def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input
     cropped = g.op("Slice", up, g.const([0, 0], dtype=np.int64), pre, g.const([2, 3], dtype=np.int64))
     sizes = g.concat([g.slice(g.op("Shape", low), [0], [2], [0]), g.op("Cast", size, to=TensorProto.INT64)], axis=0)
     masks = g.op("Resize", cropped, "", "", sizes, mode="linear", coordinate_transformation_mode="half_pixel")
-    g.output(masks, "masks")
-    g.output(iou, "iou_predictions")
-    g.output(low, "low_res_masks")
+    for value, name in ((masks, "masks"), (iou, "iou_predictions"), (low, "low_res_masks")):
+        g.output(g.slice(value, [1], [2], [1]) if single_mask else value, name)
     return g.model()
+
+
+def renamed(model: onnx.ModelProto, names: dict[str, str]) -> onnx.ModelProto:
+    """A copy of `model` with graph inputs and outputs renamed ({old: new}), every use following."""
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    g = m.graph
+    for v in [*g.input, *g.output]:
+        v.name = names.get(v.name, v.name)
+    for n in g.node:
+        n.input[:] = [names.get(x, x) for x in n.input]
+        n.output[:] = [names.get(x, x) for x in n.output]
+    return m
 
 
 def drawn_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
