@@ -15,8 +15,10 @@ from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators import blazepose as bp
 from ga3ce_prep.estimators.blazepose_smpl import to_smpl_head30
+from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, invert_affine, letterbox_roi, roi_affine
 from ga3ce_prep.estimators.placement import (ray_rotation, refine_with_depth, sample_depth, solve_translation,
                                              weighted_median)
+from ga3ce_prep.estimators.ssd import decode_detections, ssd_anchors, weighted_nms
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.geometry import project
 from ga3ce_prep.skeleton import HEAD_JOINTS, J, N_JOINTS
@@ -29,7 +31,7 @@ L = bp.L
 
 # --- detector decoding ---------------------------------------------------------------------------
 def test_ssd_anchors_count_order_and_centres():
-    a = bp.ssd_anchors()
+    a = ssd_anchors(bp.DET_SIZE, bp.DET_STRIDES)
     assert a.shape == (2254, 2) == (28 * 28 * 2 + 14 * 14 * 2 + 7 * 7 * 6, 2)
     np.testing.assert_allclose(a[0], a[1])                        # 2 anchors per cell at stride 8
     np.testing.assert_allclose(a[0], [0.5 / 28, 0.5 / 28])
@@ -47,8 +49,8 @@ def test_decode_detection_by_hand_through_the_letterbox():
     raw[0, :4] = [22.4, -11.2, 44.8, 22.4]        # centre +0.1, -0.05; size 0.2 x 0.1 of the 224 input
     raw[0, 4:6] = [0.0, 44.8]                     # keypoint 0: anchor + (0, 0.2)
     logits = np.array([0.0, -1.0])                # sigmoid 0.5 (kept at 0.5), 0.27 (dropped)
-    M = bp.letterbox_affine((224, 448))
-    det = bp.decode_detections(raw, logits, anchors, bp.invert_affine(M), min_score=0.5)
+    M = roi_affine(letterbox_roi((224, 448)), 224)
+    det = bp.Detections(*decode_detections(raw, logits, anchors, 224, 4, invert_affine(M), 0.5, 0.3))
     assert len(det) == 1 and det.score[0] == pytest.approx(0.5)
     # centre (0.6, 0.45) of the input -> (134.4, 100.8) input px -> ((134.4) / 0.5, (100.8 - 56) / 0.5)
     # in continuous image px -> minus 0.5 for pixel centres at integers
@@ -61,9 +63,11 @@ def test_decode_detection_by_hand_through_the_letterbox():
 def test_letterbox_pixels_land_where_the_affine_says():
     rgb = np.zeros((100, 300, 3), np.uint8)
     rgb[40, 250] = 255
-    x, M = bp.letterbox(rgb)
+    x, M = bp.detector_input(rgb)
+    s = 224 / 300                                  # the image's outer edges land on the input's: bars of 74.67 px
+    np.testing.assert_allclose(M, [[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s + (224 - 100 * s) / 2 - 0.5]], atol=1e-12)
     assert x.shape == (1, 224, 224, 3) and x.min() == -1.0
-    q = bp.apply_affine(M, [250, 40])
+    q = apply_affine(M, [250, 40])
     peak = np.unravel_index(np.argmax(x[0, ..., 0]), (224, 224))
     assert np.hypot(peak[1] - q[0], peak[0] - q[1]) < 1.0
     assert x[0, 0, 0, 0] == -1.0 and x[0, 112, 112, 0] == -1.0   # bar and black content both -1
@@ -75,17 +79,18 @@ def _dets(boxes, scores, kps=None):
     return bp.Detections(boxes, kps, np.asarray(scores, float))
 
 
-def test_weighted_nms_merges_a_cluster_and_keeps_the_rest():
-    det = _dets([[0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60]], [0.6, 0.9, 0.7])
-    det.keypoints[:, 0] = [[0, 0], [10, 10], [55, 55]]
-    out = bp.weighted_nms(det, 0.3)
-    assert len(out) == 2
-    np.testing.assert_allclose(out.score, [0.9, 0.7])
-    np.testing.assert_allclose(out.box[0], (0.9 * np.array([1, 0, 11, 10]) + 0.6 * np.array([0, 0, 10, 10])) / 1.5)
-    np.testing.assert_allclose(out.keypoints[0, 0], [6, 6])          # (0.9 * 10 + 0.6 * 0) / 1.5
-    plain = bp.weighted_nms(det, 0.3, weighted=False)
-    np.testing.assert_allclose(plain.box[0], [1, 0, 11, 10])
-    assert len(bp.weighted_nms(_dets(np.zeros((0, 4)), []), 0.3)) == 0
+def test_plain_nms_keeps_the_best_of_each_cluster():
+    """`weighted_nms: false`: the cluster is the weighted one's (test_facemesh), its box and
+    keypoints the best member's."""
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60.0]])
+    kps = np.zeros((3, 4, 2))
+    kps[:, 0] = [[0, 0], [10, 10], [55, 55]]
+    b, k, s = weighted_nms(boxes, kps, np.array([0.6, 0.9, 0.7]), 0.3, weighted=False)
+    np.testing.assert_array_equal(s, [0.9, 0.7])
+    np.testing.assert_array_equal(b, boxes[[1, 2]])
+    np.testing.assert_array_equal(k, kps[[1, 2]])
+    b, k, s = weighted_nms(np.zeros((0, 4)), np.zeros((0, 4, 2)), np.zeros(0), 0.3)
+    assert b.shape == (0, 4) and k.shape == (0, 4, 2) and s.shape == (0,)
 
 
 def test_choose_detection_by_body_box_then_head_box_then_score():
@@ -104,10 +109,10 @@ def test_choose_detection_by_body_box_then_head_box_then_score():
 # --- ROI and crop ----------------------------------------------------------------------------------
 def test_roi_from_keypoints_upright_and_lying():
     roi = bp.roi_from_keypoints(np.array([100.0, 200.0]), np.array([100.0, 100.0]))
-    assert roi.rotation == pytest.approx(0.0) and roi.size == pytest.approx(250.0)
-    np.testing.assert_allclose(roi.centre, [100, 200])
+    assert roi.angle == pytest.approx(0.0) and roi.size == pytest.approx(250.0)
+    np.testing.assert_allclose(roi.center, [100, 200])
     lying = bp.roi_from_keypoints(np.array([100.0, 200.0]), np.array([180.0, 200.0]))  # head to the right
-    assert lying.rotation == pytest.approx(np.pi / 2) and lying.size == pytest.approx(200.0)
+    assert lying.angle == pytest.approx(np.pi / 2) and lying.size == pytest.approx(200.0)
 
 
 @pytest.mark.parametrize("theta", [0.0, 0.7, -2.5])
@@ -115,26 +120,37 @@ def test_crop_affine_round_trip_and_orientation(theta):
     hip = np.array([300.0, 260.0])
     up = np.array([np.sin(theta), -np.cos(theta)])            # the body axis, turned by theta
     roi = bp.roi_from_keypoints(hip, hip + 80 * up)
-    assert roi.rotation == pytest.approx(theta)
-    M = bp.crop_affine(roi)
+    assert roi.angle == pytest.approx(theta)
+    M = roi_affine(roi, bp.LMK_SIZE)
     pts = np.random.default_rng(0).uniform(0, 600, (20, 2))
-    np.testing.assert_allclose(bp.apply_affine(bp.invert_affine(M), bp.apply_affine(M, pts)), pts, atol=1e-9)
-    np.testing.assert_allclose(bp.apply_affine(M, hip), [127.5, 127.5], atol=1e-9)
-    head = bp.apply_affine(M, hip + 80 * up)                   # the scale point is straight up in the crop
+    np.testing.assert_allclose(apply_affine(invert_affine(M), apply_affine(M, pts)), pts, atol=1e-9)
+    np.testing.assert_allclose(apply_affine(M, hip), [127.5, 127.5], atol=1e-9)
+    head = apply_affine(M, hip + 80 * up)                      # the scale point is straight up in the crop
     np.testing.assert_allclose(head, [127.5, 127.5 - 80 * 256 / 200], atol=1e-9)
     rgb = np.zeros((600, 640, 3), np.uint8)
     dot = np.array([340, 200])
     rgb[dot[1] - 1:dot[1] + 2, dot[0] - 1:dot[0] + 2] = 255
-    x = bp.crop(rgb, roi)
+    x, M2 = bp.landmark_input(rgb, roi)
+    np.testing.assert_array_equal(M2, M)
     assert x.shape == (1, 256, 256, 3) and 0 <= x.min() and x.max() <= 1
     ys, xs = np.nonzero(x[0, ..., 0] > 0.5)
-    np.testing.assert_allclose([xs.mean(), ys.mean()], bp.apply_affine(M, dot), atol=0.6)
+    np.testing.assert_allclose([xs.mean(), ys.mean()], apply_affine(M, dot), atol=0.6)
+
+
+def test_landmark_crop_repeats_the_border_outside_the_image():
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    rgb[:, -1] = (200, 100, 50)                                    # the right-hand column
+    roi = SquareRoi(np.array([150.0, 60.0]), 64.0, 0.0)            # half of it right of the image
+    x, M = bp.landmark_input(rgb, roi)
+    beyond = apply_affine(M, [[170.0, 60.0], [178.0, 35.0]])       # crop pixels of points right of the image
+    for u, v in np.rint(beyond).astype(int):
+        np.testing.assert_allclose(x[0, v, u], np.array([200, 100, 50]) / 255, atol=1e-6)
 
 
 def test_decode_landmarks_inverts_the_crop_and_turns_the_world():
-    roi = bp.Roi(np.array([200.0, 150.0]), 128.0, np.pi / 2)
+    roi = SquareRoi(np.array([200.0, 150.0]), 128.0, np.pi / 2)
     img = np.random.default_rng(1).uniform(100, 300, (bp.N_BODY, 2))
-    crop_xy = bp.apply_affine(bp.crop_affine(roi), img) + 0.5      # the model's crop pixels: edges at 0
+    crop_xy = apply_affine(roi_affine(roi, bp.LMK_SIZE), img) + 0.5  # the model's crop pixels: edges at 0
     raw = np.zeros((bp.N_MODEL, 5))
     raw[:bp.N_BODY, :2] = crop_xy
     raw[:, 3], raw[:, 4] = 2.0, -2.0
@@ -255,7 +271,7 @@ def test_place_landmarks_2d_only_and_with_depth():
     vis = np.full(bp.N_BODY, 0.9)
     vis[rng.choice(bp.N_BODY, 5, replace=False)] = 0.1
     vis[unused] = 0.0
-    lm = bp.PoseLandmarks(uv, vis, np.ones(bp.N_BODY), world, 1.0, 1.0, bp.Roi(hip[:2], 100.0, 0.0))
+    lm = bp.PoseLandmarks(uv, vis, np.ones(bp.N_BODY), world, 1.0, 1.0, SquareRoi(hip[:2], 100.0, 0.0))
     depth = np.zeros((480, 640))
     order = np.argsort(-lm_true[:, 2])                               # nearer landmarks painted last
     for i in order:
