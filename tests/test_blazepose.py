@@ -16,8 +16,7 @@ from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators import blazepose as bp
 from ga3ce_prep.estimators.blazepose_smpl import to_smpl_head30
 from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, invert_affine, letterbox_roi, roi_affine
-from ga3ce_prep.estimators.placement import (ray_rotation, refine_with_depth, sample_depth, solve_translation,
-                                             weighted_median)
+from ga3ce_prep.estimators.placement import refine_with_depth, sample_depth, solve_translation, weighted_median
 from ga3ce_prep.estimators.ssd import decode_detections, ssd_anchors, weighted_nms
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.geometry import project
@@ -182,14 +181,6 @@ def test_solve_translation_recovers_a_known_T_and_ignores_zero_weights():
     np.testing.assert_allclose(solve_translation(world, uv, w, K), T, atol=1e-9)
     with pytest.raises(FrameError, match="usable"):
         solve_translation(world, uv, np.eye(len(world))[0], K)
-
-
-def test_ray_rotation_takes_the_axis_to_the_ray():
-    R = ray_rotation(np.array([620.0, 40.0]), K)
-    ray = np.array([300 / 500, -200 / 480, 1.0])
-    np.testing.assert_allclose(R @ [0, 0, 1], ray / np.linalg.norm(ray), atol=1e-12)
-    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(ray_rotation(K[:2, 2], K), np.eye(3))
 
 
 def test_sample_depth_and_weighted_median():

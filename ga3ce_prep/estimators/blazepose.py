@@ -33,11 +33,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FrameError
+from ..geometry import look_at_rotation, pixel_ray
 from ..params import param
 from .crops import (SquareRoi, apply_affine, continuous_to_index, crop, invert_affine, letterbox_roi, roi_affine,
                     rotation_2d)
 from .litert import LiteModel, LiteParams, LiteTensor
-from .placement import ray_rotation, refine_with_depth, solve_translation
+from .placement import refine_with_depth, solve_translation
 from .ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 
 LANDMARK_NAMES: tuple[str, ...] = (
@@ -256,7 +257,7 @@ def place_landmarks(lm: PoseLandmarks, K: np.ndarray, min_visibility: float, ray
     w = np.where(lm.visibility >= min_visibility, lm.visibility, 0.0)
     world = lm.world
     if ray_alignment and w.sum() > 0:
-        world = world @ ray_rotation(np.average(lm.image, axis=0, weights=w), K).T
+        world = world @ look_at_rotation(pixel_ray(np.average(lm.image, axis=0, weights=w), K)).T
     T = solve_translation(world, lm.image, w, K)
     if depth is not None:
         offset = np.full(N_BODY, float(joint_depth_offset))
