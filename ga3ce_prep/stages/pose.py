@@ -13,13 +13,12 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import ModelFileError
 from ..estimators.blazepose import BlazePoseOptions, place_landmarks
 from ..estimators.blazepose_smpl import to_smpl_head30
 from ..frames import FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
-from .base import PoseBackend
+from .base import PoseBackend, ProcessEstimator
 from .oracle_noise import frame_rng, noisy_pose
 from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
@@ -69,7 +68,7 @@ class OraclePose(PoseBackend):
                           p.scale_sigma, p.scale_bias, p.offset_sigma)
 
 
-class BlazePose(PoseBackend):
+class BlazePose(ProcessEstimator, PoseBackend):
     """BlazePose GHUM (full or heavy, LiteRT) on the frame's image: the person matching the frame's
     body box (else the one around its head box, else the best detection), world landmarks
     placed in the camera frame by a 2D fit through K (no depth yet: the stage depends on `input`
@@ -90,32 +89,16 @@ class BlazePose(PoseBackend):
 
     def check(self) -> None:
         """Before any work: both registry files are fetched and have their pinned SHA-256."""
-        from ..registry_models import model_path, verify
+        from .. import registry_models
 
         for key in self._keys():
-            path = model_path(key)  # ModelFileError naming `ga3ce-prep models fetch` when missing
-            if not verify(key):
-                raise ModelFileError(f"stages.pose: registry model {key!r} at {path} does not have its pinned "
-                                     "SHA-256 (damaged or replaced): refused; run `ga3ce-prep models fetch` "
-                                     "to fetch it again")
+            registry_models.require(key, f"stages.pose.backend {self.name}")
 
-    def warm(self) -> None:
-        self.estimator()
+    def build_estimator(self):
+        from ..estimators.blazepose import BlazePoseEstimator
+        from ..registry_models import model_path
 
-    def estimator(self):
-        """The process's detector and landmark interpreters (built once, on first use)."""
-        if getattr(self, "_estimator", None) is None:
-            from ..estimators.blazepose import BlazePoseEstimator
-            from ..registry_models import model_path
-
-            det, lmk = (model_path(k) for k in self._keys())
-            self._estimator = BlazePoseEstimator(det, lmk, self.p)
-        return self._estimator
-
-    def __getstate__(self):  # interpreters stay in the process that made them (dask workers rebuild theirs)
-        state = dict(self.__dict__)
-        state.pop("_estimator", None)
-        return state
+        return BlazePoseEstimator(*(model_path(k) for k in self._keys()), self.p)
 
     def pose(self, frame: FrameRef) -> np.ndarray:
         p = self.p
