@@ -250,9 +250,8 @@ def place_landmarks(lm: PoseLandmarks, K: np.ndarray, min_visibility: float, ray
     frame the crop was. Then T: the 2D fit (`placement.solve_translation`) and, when a depth map
     (H, W) metres at the image's resolution is given, its depth refined from the measured depth
     at those landmarks (`placement.refine_with_depth`; body joints lie `joint_depth_offset`
-    metres behind the surface, face landmarks on it). The pose stage runs without depth for now
-    (it depends on the input stage only); `depth`/`valid` are for when the DAG gives it the
-    depth stage's DepthMap.
+    metres behind the surface, face landmarks on it); the `pose/blazepose` backend passes the
+    depth stage's DepthMap (`depth_refine`).
     """
     w = np.where(lm.visibility >= min_visibility, lm.visibility, 0.0)
     world = lm.world
