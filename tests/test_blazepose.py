@@ -492,7 +492,7 @@ BLAZEPOSE = [*SMALL, "stages.pose.backend=blazepose", "stages.pose.params={}", "
 def test_pipeline_runs_blazepose_with_the_depth_map(synth_world, tmp_path):
     """`run_pipeline` on the synthetic world (sensor depth) with `pose: blazepose`: the pose joins
     the geometry task and gets each frame's depth map. The synthetic people are shaded geometric
-    meshes 30-40 px tall: the detector fires only on the test scene (scores 0.56-0.72, elsewhere
+    meshes 40-67 px tall: the detector fires only on the test scene (scores 0.56-0.72, elsewhere
     at most 0.29), where the landmark model's pose flag is 0.74-0.99; the 8 other frames are kept
     with a NaN pose and a "degraded" failure record. Against a run with `depth_refine: false`,
     each found pose moves as a whole (0.7-1.6 m here: the 2D fit puts the small figure at about
