@@ -175,7 +175,7 @@ def decode_landmarks(raw: np.ndarray, raw_world: np.ndarray, roi: SquareRoi, siz
     raw: (39 * 5,) x, y (crop pixels, 0 at the crop's left/top edge), z, visibility and presence
     logits; raw_world: (39 * 3,) metres in the crop's axes. Returns image (33, 2) pixels through
     the inverse crop affine, visibility (33,), presence (33,) (sigmoids), and world (33, 3) metres
-    with x, y turned by the ROI rotation (z unchanged), i.e. in the image's axes.
+    with x, y turned by the ROI angle (z unchanged), i.e. in the image's axes.
     """
     r = np.asarray(raw, np.float64).reshape(N_MODEL, 5)[:N_BODY]
     image = apply_affine(invert_affine(roi_affine(roi, size)), continuous_to_index(r[:, :2]))
