@@ -15,21 +15,26 @@ from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators import blazepose as bp
 from ga3ce_prep.estimators.blazepose_smpl import to_smpl_head30
-from ga3ce_prep.estimators.placement import (ray_rotation, refine_with_depth, sample_depth, solve_translation,
-                                             weighted_median)
-from ga3ce_prep.frames import FrameRef
+from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, invert_affine, letterbox_roi, roi_affine
+from ga3ce_prep.estimators.placement import refine_with_depth, sample_depth, solve_translation, weighted_median
+from ga3ce_prep.estimators.ssd import decode_detections, ssd_anchors, weighted_nms
+from ga3ce_prep.frames import DepthMap, FrameRef
 from ga3ce_prep.geometry import project
+from ga3ce_prep.pipeline import load_pipeline, run_pipeline
+from ga3ce_prep.pipeline.tasks import task_stages
 from ga3ce_prep.skeleton import HEAD_JOINTS, J, N_JOINTS
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
+from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.person import REST
+from ga3ce_prep.testing.worlds import SMALL
 
 L = bp.L
 
 
 # --- detector decoding ---------------------------------------------------------------------------
 def test_ssd_anchors_count_order_and_centres():
-    a = bp.ssd_anchors()
+    a = ssd_anchors(bp.DET_SIZE, bp.DET_STRIDES)
     assert a.shape == (2254, 2) == (28 * 28 * 2 + 14 * 14 * 2 + 7 * 7 * 6, 2)
     np.testing.assert_allclose(a[0], a[1])                        # 2 anchors per cell at stride 8
     np.testing.assert_allclose(a[0], [0.5 / 28, 0.5 / 28])
@@ -47,8 +52,8 @@ def test_decode_detection_by_hand_through_the_letterbox():
     raw[0, :4] = [22.4, -11.2, 44.8, 22.4]        # centre +0.1, -0.05; size 0.2 x 0.1 of the 224 input
     raw[0, 4:6] = [0.0, 44.8]                     # keypoint 0: anchor + (0, 0.2)
     logits = np.array([0.0, -1.0])                # sigmoid 0.5 (kept at 0.5), 0.27 (dropped)
-    M = bp.letterbox_affine((224, 448))
-    det = bp.decode_detections(raw, logits, anchors, bp.invert_affine(M), min_score=0.5)
+    M = roi_affine(letterbox_roi((224, 448)), 224)
+    det = bp.Detections(*decode_detections(raw, logits, anchors, 224, 4, invert_affine(M), 0.5, 0.3))
     assert len(det) == 1 and det.score[0] == pytest.approx(0.5)
     # centre (0.6, 0.45) of the input -> (134.4, 100.8) input px -> ((134.4) / 0.5, (100.8 - 56) / 0.5)
     # in continuous image px -> minus 0.5 for pixel centres at integers
@@ -61,9 +66,11 @@ def test_decode_detection_by_hand_through_the_letterbox():
 def test_letterbox_pixels_land_where_the_affine_says():
     rgb = np.zeros((100, 300, 3), np.uint8)
     rgb[40, 250] = 255
-    x, M = bp.letterbox(rgb)
+    x, M = bp.detector_input(rgb)
+    s = 224 / 300                                  # the image's outer edges land on the input's: bars of 74.67 px
+    np.testing.assert_allclose(M, [[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s + (224 - 100 * s) / 2 - 0.5]], atol=1e-12)
     assert x.shape == (1, 224, 224, 3) and x.min() == -1.0
-    q = bp.apply_affine(M, [250, 40])
+    q = apply_affine(M, [250, 40])
     peak = np.unravel_index(np.argmax(x[0, ..., 0]), (224, 224))
     assert np.hypot(peak[1] - q[0], peak[0] - q[1]) < 1.0
     assert x[0, 0, 0, 0] == -1.0 and x[0, 112, 112, 0] == -1.0   # bar and black content both -1
@@ -75,17 +82,18 @@ def _dets(boxes, scores, kps=None):
     return bp.Detections(boxes, kps, np.asarray(scores, float))
 
 
-def test_weighted_nms_merges_a_cluster_and_keeps_the_rest():
-    det = _dets([[0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60]], [0.6, 0.9, 0.7])
-    det.keypoints[:, 0] = [[0, 0], [10, 10], [55, 55]]
-    out = bp.weighted_nms(det, 0.3)
-    assert len(out) == 2
-    np.testing.assert_allclose(out.score, [0.9, 0.7])
-    np.testing.assert_allclose(out.box[0], (0.9 * np.array([1, 0, 11, 10]) + 0.6 * np.array([0, 0, 10, 10])) / 1.5)
-    np.testing.assert_allclose(out.keypoints[0, 0], [6, 6])          # (0.9 * 10 + 0.6 * 0) / 1.5
-    plain = bp.weighted_nms(det, 0.3, weighted=False)
-    np.testing.assert_allclose(plain.box[0], [1, 0, 11, 10])
-    assert len(bp.weighted_nms(_dets(np.zeros((0, 4)), []), 0.3)) == 0
+def test_plain_nms_keeps_the_best_of_each_cluster():
+    """`weighted_nms: false`: the cluster is the weighted one's (test_facemesh), its box and
+    keypoints the best member's."""
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60.0]])
+    kps = np.zeros((3, 4, 2))
+    kps[:, 0] = [[0, 0], [10, 10], [55, 55]]
+    b, k, s = weighted_nms(boxes, kps, np.array([0.6, 0.9, 0.7]), 0.3, weighted=False)
+    np.testing.assert_array_equal(s, [0.9, 0.7])
+    np.testing.assert_array_equal(b, boxes[[1, 2]])
+    np.testing.assert_array_equal(k, kps[[1, 2]])
+    b, k, s = weighted_nms(np.zeros((0, 4)), np.zeros((0, 4, 2)), np.zeros(0), 0.3)
+    assert b.shape == (0, 4) and k.shape == (0, 4, 2) and s.shape == (0,)
 
 
 def test_choose_detection_by_body_box_then_head_box_then_score():
@@ -104,10 +112,10 @@ def test_choose_detection_by_body_box_then_head_box_then_score():
 # --- ROI and crop ----------------------------------------------------------------------------------
 def test_roi_from_keypoints_upright_and_lying():
     roi = bp.roi_from_keypoints(np.array([100.0, 200.0]), np.array([100.0, 100.0]))
-    assert roi.rotation == pytest.approx(0.0) and roi.size == pytest.approx(250.0)
-    np.testing.assert_allclose(roi.centre, [100, 200])
+    assert roi.angle == pytest.approx(0.0) and roi.size == pytest.approx(250.0)
+    np.testing.assert_allclose(roi.center, [100, 200])
     lying = bp.roi_from_keypoints(np.array([100.0, 200.0]), np.array([180.0, 200.0]))  # head to the right
-    assert lying.rotation == pytest.approx(np.pi / 2) and lying.size == pytest.approx(200.0)
+    assert lying.angle == pytest.approx(np.pi / 2) and lying.size == pytest.approx(200.0)
 
 
 @pytest.mark.parametrize("theta", [0.0, 0.7, -2.5])
@@ -115,26 +123,37 @@ def test_crop_affine_round_trip_and_orientation(theta):
     hip = np.array([300.0, 260.0])
     up = np.array([np.sin(theta), -np.cos(theta)])            # the body axis, turned by theta
     roi = bp.roi_from_keypoints(hip, hip + 80 * up)
-    assert roi.rotation == pytest.approx(theta)
-    M = bp.crop_affine(roi)
+    assert roi.angle == pytest.approx(theta)
+    M = roi_affine(roi, bp.LMK_SIZE)
     pts = np.random.default_rng(0).uniform(0, 600, (20, 2))
-    np.testing.assert_allclose(bp.apply_affine(bp.invert_affine(M), bp.apply_affine(M, pts)), pts, atol=1e-9)
-    np.testing.assert_allclose(bp.apply_affine(M, hip), [127.5, 127.5], atol=1e-9)
-    head = bp.apply_affine(M, hip + 80 * up)                   # the scale point is straight up in the crop
+    np.testing.assert_allclose(apply_affine(invert_affine(M), apply_affine(M, pts)), pts, atol=1e-9)
+    np.testing.assert_allclose(apply_affine(M, hip), [127.5, 127.5], atol=1e-9)
+    head = apply_affine(M, hip + 80 * up)                      # the scale point is straight up in the crop
     np.testing.assert_allclose(head, [127.5, 127.5 - 80 * 256 / 200], atol=1e-9)
     rgb = np.zeros((600, 640, 3), np.uint8)
     dot = np.array([340, 200])
     rgb[dot[1] - 1:dot[1] + 2, dot[0] - 1:dot[0] + 2] = 255
-    x = bp.crop(rgb, roi)
+    x, M2 = bp.landmark_input(rgb, roi)
+    np.testing.assert_array_equal(M2, M)
     assert x.shape == (1, 256, 256, 3) and 0 <= x.min() and x.max() <= 1
     ys, xs = np.nonzero(x[0, ..., 0] > 0.5)
-    np.testing.assert_allclose([xs.mean(), ys.mean()], bp.apply_affine(M, dot), atol=0.6)
+    np.testing.assert_allclose([xs.mean(), ys.mean()], apply_affine(M, dot), atol=0.6)
+
+
+def test_landmark_crop_repeats_the_border_outside_the_image():
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    rgb[:, -1] = (200, 100, 50)                                    # the right-hand column
+    roi = SquareRoi(np.array([150.0, 60.0]), 64.0, 0.0)            # half of it right of the image
+    x, M = bp.landmark_input(rgb, roi)
+    beyond = apply_affine(M, [[170.0, 60.0], [178.0, 35.0]])       # crop pixels of points right of the image
+    for u, v in np.rint(beyond).astype(int):
+        np.testing.assert_allclose(x[0, v, u], np.array([200, 100, 50]) / 255, atol=1e-6)
 
 
 def test_decode_landmarks_inverts_the_crop_and_turns_the_world():
-    roi = bp.Roi(np.array([200.0, 150.0]), 128.0, np.pi / 2)
+    roi = SquareRoi(np.array([200.0, 150.0]), 128.0, np.pi / 2)
     img = np.random.default_rng(1).uniform(100, 300, (bp.N_BODY, 2))
-    crop_xy = bp.apply_affine(bp.crop_affine(roi), img) + 0.5      # the model's crop pixels: edges at 0
+    crop_xy = apply_affine(roi_affine(roi, bp.LMK_SIZE), img) + 0.5  # the model's crop pixels: edges at 0
     raw = np.zeros((bp.N_MODEL, 5))
     raw[:bp.N_BODY, :2] = crop_xy
     raw[:, 3], raw[:, 4] = 2.0, -2.0
@@ -166,14 +185,6 @@ def test_solve_translation_recovers_a_known_T_and_ignores_zero_weights():
     np.testing.assert_allclose(solve_translation(world, uv, w, K), T, atol=1e-9)
     with pytest.raises(FrameError, match="usable"):
         solve_translation(world, uv, np.eye(len(world))[0], K)
-
-
-def test_ray_rotation_takes_the_axis_to_the_ray():
-    R = ray_rotation(np.array([620.0, 40.0]), K)
-    ray = np.array([300 / 500, -200 / 480, 1.0])
-    np.testing.assert_allclose(R @ [0, 0, 1], ray / np.linalg.norm(ray), atol=1e-12)
-    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(ray_rotation(K[:2, 2], K), np.eye(3))
 
 
 def test_sample_depth_and_weighted_median():
@@ -255,7 +266,7 @@ def test_place_landmarks_2d_only_and_with_depth():
     vis = np.full(bp.N_BODY, 0.9)
     vis[rng.choice(bp.N_BODY, 5, replace=False)] = 0.1
     vis[unused] = 0.0
-    lm = bp.PoseLandmarks(uv, vis, np.ones(bp.N_BODY), world, 1.0, 1.0, bp.Roi(hip[:2], 100.0, 0.0))
+    lm = bp.PoseLandmarks(uv, vis, np.ones(bp.N_BODY), world, 1.0, 1.0, SquareRoi(hip[:2], 100.0, 0.0))
     depth = np.zeros((480, 640))
     order = np.argsort(-lm_true[:, 2])                               # nearer landmarks painted last
     for i in order:
@@ -394,12 +405,18 @@ def _frame(tmp_path: Path, rgb: np.ndarray, name: str = "a") -> FrameRef:
     return FrameRef(name, "test", "s", path, _k_60deg(w, h), (w, h), np.full(4, np.nan, np.float32))
 
 
+def _unmeasured(rgb: np.ndarray) -> DepthMap:
+    """A depth map with no measured pixel: the placement stays the 2D fit."""
+    return DepthMap(np.zeros(rgb.shape[:2], np.float32), np.zeros(rgb.shape[:2], bool))
+
+
 @pytest.mark.parametrize("variant", ["full", "heavy"])
 def test_backend_astronaut_in_the_camera_frame(tmp_path, variant):
     b = backend_class("pose", "blazepose")({"variant": variant}, BackendContext(tmp_path))
     b.check()
     b.warm()
-    pose = b.pose(_frame(tmp_path, skimage.data.astronaut()))
+    rgb = skimage.data.astronaut()
+    pose = b.pose(_frame(tmp_path, rgb), _unmeasured(rgb))
     assert pose.shape == (N_JOINTS, 3) and pose.dtype == np.float32
     for name in ("nose", "leye", "reye", "lear", "rear", "lsho", "rsho", "neck", "lcla", "rcla", "head", "htop"):
         assert np.isfinite(pose[J[name]]).all(), name
@@ -410,13 +427,44 @@ def test_backend_astronaut_in_the_camera_frame(tmp_path, variant):
     assert pose[J["htop"], 1] < pose[J["nose"], 1] < pose[J["neck"], 1]
     clone = pickle.loads(pickle.dumps(b))                          # interpreters stay behind
     assert getattr(clone, "_estimator", None) is None
-    np.testing.assert_array_equal(clone.pose(_frame(tmp_path, skimage.data.astronaut(), "b")), pose)
+    np.testing.assert_array_equal(clone.pose(_frame(tmp_path, rgb, "b"), _unmeasured(rgb)), pose)
+
+
+def test_backend_shifts_the_pose_by_what_the_depth_refinement_gives(tmp_path):
+    """The backend reads the depth stage's map (`needs`) and places the landmarks with it: the
+    whole pose moves by refine_with_depth's T minus the 2D fit's, computed here from the same
+    landmarks (a backdrop 20% farther than the 2D fit's root, 1 column in 3 unmeasured);
+    `depth_refine: false` ignores the map."""
+    rgb = skimage.data.astronaut()
+    frame = _frame(tmp_path, rgb)
+    make = backend_class("pose", "blazepose")
+    b = make({"ray_alignment": False}, BackendContext(tmp_path))
+    assert b.needs == ("depth",)
+    lm = b.estimator()(rgb)
+    w = np.where(lm.visibility >= 0.5, lm.visibility, 0.0)
+    T2 = solve_translation(lm.world, lm.image, w, frame.K)
+    depth = np.full(rgb.shape[:2], 1.2 * T2[2], np.float32)
+    valid = np.ones(rgb.shape[:2], bool)
+    valid[:, ::3] = False
+    offset = np.where(np.isin(np.arange(bp.N_BODY), bp.FACE), 0.0, 0.05)
+    Td, n = refine_with_depth(lm.world, lm.image, w, frame.K, T2, depth, valid, offset)
+    assert n >= 5 and Td[2] > T2[2] + 0.1
+
+    flat = b.pose(frame, _unmeasured(rgb))
+    deep = b.pose(frame, DepthMap(depth, valid))
+    np.testing.assert_array_equal(flat, to_smpl_head30(lm.world + T2, lm.visibility).astype(np.float32))
+    np.testing.assert_array_equal(np.isnan(deep), np.isnan(flat))
+    seen = np.isfinite(flat).all(1)
+    np.testing.assert_allclose(deep[seen] - flat[seen], np.tile(Td - T2, (seen.sum(), 1)), atol=1e-6)
+    off = make({"ray_alignment": False, "depth_refine": False}, BackendContext(tmp_path))
+    np.testing.assert_array_equal(off.pose(frame, DepthMap(depth, valid)), flat)
 
 
 def test_backend_no_person_raises_frame_error(tmp_path):
     b = backend_class("pose", "blazepose")({}, BackendContext(tmp_path))
+    rgb = skimage.data.chelsea()
     with pytest.raises(FrameError, match="no person"):
-        b.pose(_frame(tmp_path, skimage.data.chelsea()))
+        b.pose(_frame(tmp_path, rgb), _unmeasured(rgb))
 
 
 def test_backend_check_refuses_a_damaged_or_missing_model(tmp_path, monkeypatch):
@@ -435,3 +483,43 @@ def test_backend_check_refuses_a_damaged_or_missing_model(tmp_path, monkeypatch)
         b.check()
     with pytest.raises(ModelFileError, match="models fetch"):       # heavy is not in this folder
         backend_class("pose", "blazepose")({"variant": "heavy"}, BackendContext(tmp_path)).check()
+
+
+# --- in the pipeline ---------------------------------------------------------------------------------
+BLAZEPOSE = [*SMALL, "stages.pose.backend=blazepose", "stages.pose.params={}", "run.shard_size=5"]
+
+
+def test_pipeline_runs_blazepose_with_the_depth_map(synth_world, tmp_path):
+    """`run_pipeline` on the synthetic world (sensor depth) with `pose: blazepose`: the pose joins
+    the geometry task and gets each frame's depth map. The synthetic people are shaded geometric
+    meshes 40-67 px tall: the detector fires only on the test scene (scores 0.56-0.72, elsewhere
+    at most 0.29), where the landmark model's pose flag is 0.74-0.99; the 8 other frames are kept
+    with a NaN pose and a "degraded" failure record. Against a run with `depth_refine: false`,
+    each found pose moves as a whole (0.7-1.6 m here: the 2D fit puts the small figure at about
+    2.2 m)."""
+    conf = load_pipeline("synthetic", synth_world, overrides=BLAZEPOSE, check_files=False)
+    assert conf.upstream["pose"] == ("input", "depth")
+    assert task_stages(conf.upstream)["geometry"] == ("depth", "objects", "head", "pose")
+    poses = {}
+    for refine in (True, False):
+        out = tmp_path / f"refine_{refine}.zarr"
+        summary = run_pipeline("synthetic", synth_world, out, progress=False,
+                               overrides=[*BLAZEPOSE, f"stages.pose.params.depth_refine={str(refine).lower()}"])
+        s = open_store(out)
+        lost = np.isnan(s.frames["pose"]).all(axis=(1, 2))
+        ids = np.array([str(i) for i in s.frames["id"]])
+        assert summary.counts.frames_kept == 12 and summary.counts.degraded_by_stage == {"pose": 8}
+        assert summary.counts.failures == {"pose": {"FrameError": 8}}
+        assert lost.sum() == 8 and all(i.startswith("test/") for i in ids[~lost])
+        f = {k: [str(x) for x in v] for k, v in s.failures.items()}
+        assert sorted(f["frame_id"]) == sorted(ids[lost])
+        assert set(f["stage"]) == {"pose"} and set(f["action"]) == {"degraded"}
+        assert all("no person" in m for m in f["message"])
+        poses[refine] = dict(zip(ids, s.frames["pose"]))
+    for fid in ids[~lost]:
+        deep, flat = poses[True][fid], poses[False][fid]
+        seen = np.isfinite(flat).all(1)
+        assert seen.sum() >= 15 and np.array_equal(seen, np.isfinite(deep).all(1))
+        shift = deep[seen] - flat[seen]
+        np.testing.assert_allclose(shift, np.tile(shift[0], (seen.sum(), 1)), atol=1e-5)
+        assert np.linalg.norm(shift[0]) > 0.3

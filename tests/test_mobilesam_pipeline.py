@@ -41,3 +41,24 @@ def test_run_with_mobilesam_objects(synth_world, tmp_path):
     assert n == len(pos.xyz) > 0
     np.testing.assert_allclose(store.objects["xyz"][s:s + n], pos.xyz, atol=1e-5)
     np.testing.assert_allclose(store.objects["score"][s:s + n], r.scores[pos.index], atol=1e-6)
+
+
+def test_backend_builds_its_segmenter_once_per_process_and_leaves_it_out_of_pickles(synth_world):
+    import pickle
+
+    from ga3ce_prep.stages import backend_class
+    from ga3ce_prep.stages.base import BackendContext
+
+    ctx = BackendContext(synth_world)
+    b = backend_class("objects", "mobilesam")({"encoder": str(ENC), "decoder": str(DEC), **PARAMS}, ctx)
+    b.warm()
+    seg = b.estimator()
+    assert isinstance(seg, MobileSamSegmenter) and b.estimator() is seg
+    frame = next(iter(open_dataset("gfie", synth_world)))
+    depth = backend_class("depth", "oracle")({"truth": str(synth_world / "truth.h5")}, ctx).depth(frame)
+    masks, scores = b.masks(frame, depth)
+    clone = pickle.loads(pickle.dumps(b))                          # sessions stay behind
+    assert getattr(clone, "_estimator", None) is None
+    again, again_scores = clone.masks(frame, depth)
+    np.testing.assert_array_equal(again, masks)
+    np.testing.assert_array_equal(again_scores, scores)

@@ -3,20 +3,23 @@ defines, the rotated landmark crop, and the landmark decoding into image pixels 
 world landmarks with camera-aligned axes.
 
 The steps follow MediaPipe's `pose_detection` and `pose_landmark_by_roi` graphs (read, not
-copied; the conventions are documented at each function):
+copied; the conventions are documented at each function). The building blocks are the face
+mesh's: anchors, decoding and NMS in `ssd.py`, ROIs and crops as 2x3 affines in `crops.py`.
 
-1. `letterbox`: the image fitted into 224x224 keeping its aspect ratio (black bars), RGB in [-1, 1].
-2. `decode_detections`: 2254 SSD anchors (`ssd_anchors`); box and 4 keypoints per anchor,
-   sigmoid scores, then weighted NMS on the boxes (`weighted_nms`). Keypoint 0 is the hip
-   centre, keypoint 1 a point on the body axis whose distance to it is the body-circle radius,
-   keypoints 2 and 3 the same for the upper body (shoulder centre). MediaPipe calls the box the
-   face box; in this model it is a square over the lower face and neck, so only NMS uses it.
-3. `roi_from_keypoints`: centre = keypoint 0, square side 2.5 x the radius, rotation that
-   turns the hip-to-keypoint-1 vector upright.
-4. `crop_affine` + `cv2.warpAffine`: the ROI to 256x256 RGB in [0, 1]; the landmark model gives
-   39 x (x, y, z, visibility, presence) in crop pixels and 39 x 3 world landmarks (metres,
-   origin mid-hip, axes of the crop); `decode_landmarks` maps them back through the inverse
-   affine and turns the world landmarks by the ROI rotation.
+1. `detector_input`: the image letterboxed into 224x224 (`crops.letterbox_roi`: aspect kept,
+   black bars), RGB in [-1, 1].
+2. `ssd.decode_detections`: 2254 SSD anchors (strides 8, 16, 32, 32, 32); box and 4 keypoints
+   per anchor, sigmoid scores, weighted NMS on the boxes, back through the letterbox. Keypoint 0
+   is the hip centre, keypoint 1 a point on the body axis whose distance to it is the
+   body-circle radius, keypoints 2 and 3 the same for the upper body (shoulder centre).
+   MediaPipe calls the box the face box; in this model it is a square over the lower face and
+   neck, so only NMS uses it.
+3. `roi_from_keypoints`: centre = keypoint 0, square side 2.5 x the radius, angle that turns
+   the hip-to-keypoint-1 vector upright.
+4. `landmark_input`: the ROI to 256x256 RGB in [0, 1] (border pixels repeated); the landmark
+   model gives 39 x (x, y, z, visibility, presence) in crop pixels and 39 x 3 world landmarks
+   (metres, origin mid-hip, axes of the crop); `decode_landmarks` maps them back through the
+   inverse affine and turns the world landmarks by the ROI angle.
 
 Pixel coordinates returned here follow the project's (and OpenCV's) convention: pixel centres
 at integer coordinates, the one K uses. Landmark indices: `LANDMARK_NAMES` (33 body landmarks;
@@ -27,13 +30,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..errors import FrameError
+from ..geometry import look_at_rotation, pixel_ray
 from ..params import param
+from .crops import (SquareRoi, apply_affine, continuous_to_index, crop, invert_affine, letterbox_roi, roi_affine,
+                    rotation_2d)
 from .litert import LiteModel, LiteParams, LiteTensor
-from .placement import ray_rotation, refine_with_depth, solve_translation
+from .placement import refine_with_depth, solve_translation
+from .ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 
 LANDMARK_NAMES: tuple[str, ...] = (
     "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",
@@ -48,8 +54,8 @@ L = {name: i for i, name in enumerate(LANDMARK_NAMES)}  # L["left_shoulder"] == 
 FACE = np.arange(L["mouth_right"] + 1)  # nose, eyes, ears, mouth: points on the skin, not joint centres
 
 DET_SIZE = 224            # detector input side, pixels
-DET_STRIDES = (8, 16, 32, 32, 32)
-DET_ANCHORS_PER_LAYER = 2  # aspect ratio 1 plus the interpolated scale, fixed unit size
+DET_STRIDES = (8, 16, 32, 32, 32)  # 2 anchors per layer and cell (ssd.ssd_anchors): 2254
+DET_KEYPOINTS = 4         # hip centre, full-body scale point, shoulder centre, upper-body scale point
 LMK_SIZE = 256            # landmark model input side, pixels
 ROI_SCALE = 1.25          # MediaPipe enlarges the body circle's box by this factor
 
@@ -60,53 +66,7 @@ LANDMARK_OUTPUTS = [LiteTensor("Identity", (1, N_MODEL * 5)), LiteTensor("Identi
                     LiteTensor("Identity_4", (1, N_MODEL * 3))]
 
 
-# --- geometry helpers --------------------------------------------------------------------------
-def sigmoid(x: np.ndarray) -> np.ndarray:
-    """Logistic function, float64 (inputs clipped to +-100 as MediaPipe clips its score logits)."""
-    return 1.0 / (1.0 + np.exp(-np.clip(np.asarray(x, np.float64), -100.0, 100.0)))
-
-
-def apply_affine(M: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Points (..., 2) through a (2, 3) affine map."""
-    pts = np.asarray(pts, np.float64)
-    return pts @ M[:, :2].T + M[:, 2]
-
-
-def invert_affine(M: np.ndarray) -> np.ndarray:
-    """The (2, 3) inverse of a (2, 3) affine map."""
-    A = np.linalg.inv(M[:, :2])
-    return np.hstack([A, -A @ M[:, 2:]])
-
-
-def rotation_2d(theta: float) -> np.ndarray:
-    """(2, 2) rotation by `theta` radians in image axes (x right, y down: positive turns clockwise on screen)."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s], [s, c]])
-
-
 # --- detector -----------------------------------------------------------------------------------
-def ssd_anchors(size: int = DET_SIZE, strides: tuple[int, ...] = DET_STRIDES,
-                per_layer: int = DET_ANCHORS_PER_LAYER) -> np.ndarray:
-    """Anchor centres (N, 2) in [0, 1] (x, y) of MediaPipe's fixed-size SSD anchors.
-
-    Consecutive layers with the same stride share one feature map; each cell gets `per_layer`
-    anchors per layer, all at the cell centre ((i + 0.5) / cells). Order: layer group, row,
-    column, anchor. Default: 28*28*2 + 14*14*2 + 7*7*6 = 2254.
-    """
-    out = []
-    i = 0
-    while i < len(strides):
-        j = i
-        while j < len(strides) and strides[j] == strides[i]:
-            j += 1
-        cells = int(np.ceil(size / strides[i]))
-        c = (np.arange(cells) + 0.5) / cells
-        grid = np.stack(np.meshgrid(c, c, indexing="xy"), -1).reshape(-1, 2)  # row-major: y outer, x inner
-        out.append(np.repeat(grid, per_layer * (j - i), axis=0))
-        i = j
-    return np.concatenate(out)
-
-
 @dataclass
 class Detections:
     """Person detections in image pixels (pixel centres at integers).
@@ -123,84 +83,12 @@ class Detections:
     def __len__(self) -> int:
         return len(self.score)
 
-    def take(self, idx) -> "Detections":
-        return Detections(self.box[idx], self.keypoints[idx], self.score[idx])
 
-
-def letterbox_affine(hw: tuple[int, int], size: int = DET_SIZE) -> np.ndarray:
-    """(2, 3) affine from image pixels to the `size` x `size` letterbox (aspect kept, centred,
-    pixel centres at integers on both sides)."""
-    h, w = hw
-    s = size / max(h, w)
-    off = np.array([(size - w * s) / 2, (size - h * s) / 2])
-    return np.hstack([s * np.eye(2), (0.5 * s + off - 0.5)[:, None]])
-
-
-def letterbox(rgb: np.ndarray, size: int = DET_SIZE) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W, 3) uint8 RGB -> the detector input (1, size, size, 3) float32 in [-1, 1] (black bars
-    are -1) and the image->letterbox affine (2, 3)."""
-    M = letterbox_affine(rgb.shape[:2], size)
-    x = cv2.warpAffine(rgb, M, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+def detector_input(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) uint8 RGB -> the detector input (1, 224, 224, 3) float32 in [-1, 1], the image
+    letterboxed (black bars are -1), and the image->input affine (2, 3)."""
+    x, M = crop(rgb, letterbox_roi(rgb.shape[:2]), DET_SIZE)
     return (x.astype(np.float32) * np.float32(2 / 255) - 1)[None], M
-
-
-def decode_detections(raw: np.ndarray, logits: np.ndarray, anchors: np.ndarray, to_image: np.ndarray,
-                      min_score: float, size: int = DET_SIZE) -> Detections:
-    """Decode the detector's outputs above `min_score`.
-
-    raw: (N, 12) per anchor: x-centre, y-centre, w, h, then 4 keypoints (x, y), all in input pixels,
-    offsets relative to the anchor centre; logits: (N,) or (N, 1) score logits; anchors: (N, 2) in
-    [0, 1]; to_image: (2, 3) affine from letterbox to image pixels. Boxes and keypoints come back in
-    image pixels; rotation-free, so the box stays axis-aligned.
-    """
-    score = sigmoid(np.asarray(logits).reshape(-1))
-    keep = score >= min_score
-    raw, a, score = np.asarray(raw, np.float64)[keep], anchors[keep], score[keep]
-    centre = raw[:, 0:2] / size + a                                   # letterbox, [0, 1]
-    half = raw[:, 2:4] / (2 * size)
-    kps = raw[:, 4:12].reshape(-1, 4, 2) / size + a[:, None]
-    corners = np.stack([centre - half, centre + half], 1)             # (n, 2, 2)
-    to_px = lambda p: apply_affine(to_image, p * size - 0.5)          # noqa: E731  normalised -> image px
-    box = to_px(corners).reshape(-1, 4)
-    return Detections(box, to_px(kps), score)
-
-
-def pairwise_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU (n, m) between boxes a (n, 4) and b (m, 4), x1, y1, x2, y2."""
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), -1)
-    area = lambda x: np.prod(np.clip(x[:, 2:] - x[:, :2], 0, None), -1)  # noqa: E731
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.nan_to_num(inter / (area(a)[:, None] + area(b)[None] - inter))
-
-
-def weighted_nms(det: Detections, iou_threshold: float, weighted: bool = True) -> Detections:
-    """MediaPipe's non-maximum suppression on the detector's boxes.
-
-    Visit by decreasing score; the visited detection and every remaining one overlapping it by
-    more than `iou_threshold` form a cluster. Weighted: the cluster's box and keypoints are the
-    score-weighted mean of its members, its score the best one's. Plain: the best member is kept.
-    """
-    order = np.argsort(-det.score, kind="stable")
-    det = det.take(order)
-    iou = pairwise_iou(det.box, det.box)
-    free = np.ones(len(det), bool)
-    boxes, kps, scores = [], [], []
-    for i in range(len(det)):  # the detections above the score threshold (tens), not the 2254 anchors
-        if not free[i]:
-            continue
-        members = free & (iou[i] > iou_threshold)
-        members[i] = True
-        free &= ~members
-        w = det.score[members] if weighted else (np.arange(len(det)) == i)[members].astype(float)
-        w = w / w.sum()
-        boxes.append(w @ det.box[members])
-        kps.append(np.tensordot(w, det.keypoints[members], 1))
-        scores.append(det.score[i])
-    if not scores:
-        return Detections(np.zeros((0, 4)), np.zeros((0, 4, 2)), np.zeros(0))
-    return Detections(np.array(boxes), np.array(kps), np.array(scores))
 
 
 def choose_detection(det: Detections, hw: tuple[int, int], body_box: np.ndarray | None = None,
@@ -220,7 +108,7 @@ def choose_detection(det: Detections, hw: tuple[int, int], body_box: np.ndarray 
         raise FrameError("no person found by the BlazePose detector")
     if body_box is not None and np.isfinite(body_box).all():
         boxes = np.clip(body_boxes(det), 0, [hw[1] - 1, hw[0] - 1, hw[1] - 1, hw[0] - 1])
-        iou = pairwise_iou(boxes, np.asarray(body_box, np.float64)[None])[:, 0]
+        iou = box_iou(np.asarray(body_box, np.float64), boxes)
         if iou.max() >= min_iou:
             return int(np.argmax(iou))
     if head_box is not None and np.isfinite(head_box).all():
@@ -242,39 +130,21 @@ def body_boxes(det: Detections) -> np.ndarray:
 
 
 # --- ROI and crop -------------------------------------------------------------------------------
-@dataclass
-class Roi:
-    """A rotated square region of the image: centre (2,) pixels, side (pixels), rotation (radians;
-    the crop's up axis appears turned by it, clockwise on screen)."""
-
-    centre: np.ndarray
-    size: float
-    rotation: float
-
-
-def roi_from_keypoints(hip: np.ndarray, scale_point: np.ndarray, scale: float = ROI_SCALE) -> Roi:
-    """MediaPipe's alignment ROI: centre the hip centre; rotation = 90 deg - atan2(-dy, dx) of the
+def roi_from_keypoints(hip: np.ndarray, scale_point: np.ndarray, scale: float = ROI_SCALE) -> SquareRoi:
+    """MediaPipe's alignment ROI: centre the hip centre; angle = 90 deg - atan2(-dy, dx) of the
     hip-to-scale-point vector (so that vector points up in the crop), wrapped to [-pi, pi); side
     2 x radius x `scale`."""
     d = np.asarray(scale_point, np.float64) - hip
     theta = np.pi / 2 - np.arctan2(-d[1], d[0])
     theta = (theta + np.pi) % (2 * np.pi) - np.pi
-    return Roi(np.asarray(hip, np.float64), float(2 * np.hypot(*d) * scale), float(theta))
+    return SquareRoi(np.asarray(hip, np.float64), float(2 * np.hypot(*d) * scale), float(theta))
 
 
-def crop_affine(roi: Roi, size: int = LMK_SIZE) -> np.ndarray:
-    """(2, 3) affine from image pixels to crop pixels (both with pixel centres at integers):
-    crop = (size / side) R(rotation)^T (image - centre) + (size - 1) / 2."""
-    A = (size / roi.size) * rotation_2d(roi.rotation).T
-    return np.hstack([A, ((size - 1) / 2 - A @ roi.centre)[:, None]])
-
-
-def crop(rgb: np.ndarray, roi: Roi, size: int = LMK_SIZE) -> np.ndarray:
-    """The ROI as the landmark model's input (1, size, size, 3) float32 RGB in [0, 1]; outside the
-    image the border pixels are repeated."""
-    x = cv2.warpAffine(rgb, crop_affine(roi, size), (size, size), flags=cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
-    return (x.astype(np.float32) * np.float32(1 / 255))[None]
+def landmark_input(rgb: np.ndarray, roi: SquareRoi) -> tuple[np.ndarray, np.ndarray]:
+    """The ROI as the landmark model's input (1, 256, 256, 3) float32 RGB in [0, 1], the image's
+    border pixels repeated outside it, and the image->crop affine (2, 3)."""
+    x, M = crop(rgb, roi, LMK_SIZE, border="replicate")
+    return (x.astype(np.float32) * np.float32(1 / 255))[None], M
 
 
 # --- landmarks ----------------------------------------------------------------------------------
@@ -295,22 +165,22 @@ class PoseLandmarks:
     world: np.ndarray
     score: float
     detection_score: float
-    roi: Roi
+    roi: SquareRoi
 
 
-def decode_landmarks(raw: np.ndarray, raw_world: np.ndarray, roi: Roi, size: int = LMK_SIZE
+def decode_landmarks(raw: np.ndarray, raw_world: np.ndarray, roi: SquareRoi, size: int = LMK_SIZE
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The landmark model's outputs back in the image.
 
     raw: (39 * 5,) x, y (crop pixels, 0 at the crop's left/top edge), z, visibility and presence
     logits; raw_world: (39 * 3,) metres in the crop's axes. Returns image (33, 2) pixels through
     the inverse crop affine, visibility (33,), presence (33,) (sigmoids), and world (33, 3) metres
-    with x, y turned by the ROI rotation (z unchanged), i.e. in the image's axes.
+    with x, y turned by the ROI angle (z unchanged), i.e. in the image's axes.
     """
     r = np.asarray(raw, np.float64).reshape(N_MODEL, 5)[:N_BODY]
-    image = apply_affine(invert_affine(crop_affine(roi, size)), r[:, :2] - 0.5)
+    image = apply_affine(invert_affine(roi_affine(roi, size)), continuous_to_index(r[:, :2]))
     w = np.asarray(raw_world, np.float64).reshape(N_MODEL, 3)[:N_BODY]
-    world = np.concatenate([w[:, :2] @ rotation_2d(roi.rotation).T, w[:, 2:]], axis=1)
+    world = np.concatenate([w[:, :2] @ rotation_2d(roi.angle).T, w[:, 2:]], axis=1)
     return image, sigmoid(r[:, 3]), sigmoid(r[:, 4]), world
 
 
@@ -336,19 +206,20 @@ class BlazePoseEstimator:
         self.o = options
         self.detector = LiteModel(detector, DETECTOR_INPUTS, DETECTOR_OUTPUTS, options.threads, "BlazePose detector")
         self.landmark = LiteModel(landmark, LANDMARK_INPUTS, LANDMARK_OUTPUTS, options.threads, "BlazePose landmark")
-        self.anchors = ssd_anchors()
+        self.anchors = ssd_anchors(DET_SIZE, DET_STRIDES)
 
     def detect(self, rgb: np.ndarray) -> Detections:
-        """All people the detector finds in an (H, W, 3) uint8 RGB image, after NMS."""
-        x, M = letterbox(rgb)
+        """All people the detector finds in an (H, W, 3) uint8 RGB image, after NMS, best first."""
+        x, M = detector_input(rgb)
         out = self.detector(x)
-        det = decode_detections(out["Identity"][0], out["Identity_1"][0], self.anchors, invert_affine(M),
-                                self.o.min_detection_score)
-        return weighted_nms(det, self.o.nms_iou, self.o.weighted_nms)
+        o = self.o
+        return Detections(*decode_detections(out["Identity"][0], out["Identity_1"][0], self.anchors, DET_SIZE,
+                                             DET_KEYPOINTS, invert_affine(M), o.min_detection_score, o.nms_iou,
+                                             o.weighted_nms))
 
-    def landmarks(self, rgb: np.ndarray, roi: Roi) -> tuple[PoseLandmarks, float]:
+    def landmarks(self, rgb: np.ndarray, roi: SquareRoi) -> tuple[PoseLandmarks, float]:
         """Run the landmark model on `roi`; returns the landmarks (detection_score NaN) and the pose flag."""
-        out = self.landmark(crop(rgb, roi))
+        out = self.landmark(landmark_input(rgb, roi)[0])
         image, vis, pres, world = decode_landmarks(out["Identity"][0], out["Identity_4"][0], roi)
         score = float(np.ravel(out["Identity_1"])[0])
         return PoseLandmarks(image, vis, pres, world, score, float("nan"), roi), score
@@ -379,14 +250,13 @@ def place_landmarks(lm: PoseLandmarks, K: np.ndarray, min_visibility: float, ray
     frame the crop was. Then T: the 2D fit (`placement.solve_translation`) and, when a depth map
     (H, W) metres at the image's resolution is given, its depth refined from the measured depth
     at those landmarks (`placement.refine_with_depth`; body joints lie `joint_depth_offset`
-    metres behind the surface, face landmarks on it). The pose stage runs without depth for now
-    (it depends on the input stage only); `depth`/`valid` are for when the DAG gives it the
-    depth stage's DepthMap.
+    metres behind the surface, face landmarks on it); the `pose/blazepose` backend passes the
+    depth stage's DepthMap (`depth_refine`).
     """
     w = np.where(lm.visibility >= min_visibility, lm.visibility, 0.0)
     world = lm.world
     if ray_alignment and w.sum() > 0:
-        world = world @ ray_rotation(np.average(lm.image, axis=0, weights=w), K).T
+        world = world @ look_at_rotation(pixel_ray(np.average(lm.image, axis=0, weights=w), K)).T
     T = solve_translation(world, lm.image, w, K)
     if depth is not None:
         offset = np.full(N_BODY, float(joint_depth_offset))
@@ -395,7 +265,6 @@ def place_landmarks(lm: PoseLandmarks, K: np.ndarray, min_visibility: float, ray
     return world + T
 
 
-__all__ = ["BlazePoseEstimator", "BlazePoseOptions", "Detections", "LANDMARK_NAMES", "PoseLandmarks", "Roi",
-           "apply_affine", "body_boxes", "choose_detection", "crop", "crop_affine", "decode_detections",
-           "decode_landmarks", "invert_affine", "letterbox", "letterbox_affine", "pairwise_iou", "place_landmarks",
-           "roi_from_keypoints", "ssd_anchors", "weighted_nms"]
+__all__ = ["BlazePoseEstimator", "BlazePoseOptions", "Detections", "LANDMARK_NAMES", "PoseLandmarks", "body_boxes",
+           "choose_detection", "decode_landmarks", "detector_input", "landmark_input", "place_landmarks",
+           "roi_from_keypoints"]

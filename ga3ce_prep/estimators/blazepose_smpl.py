@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import normalize
 from ..skeleton import JOINT_NAMES, N_JOINTS
 from .blazepose import L
 
@@ -86,8 +87,7 @@ def to_smpl_head30(world: np.ndarray, visibility: np.ndarray, min_visibility: fl
     out[_J["head_smpl"]] = 0.5 * (neck + ear_c)
     vis[_J["neck_smpl"]] = vis[_J["head_smpl"]] = min(v_sho, v_ear)
     up = np.cross(eye_c - ear_c, p[L["left_ear"]] - p[L["right_ear"]])
-    n = np.linalg.norm(up)
-    out[_J["htop_mpi_inf_3dhp"]] = ear_c + head_top_height * up / n if n > 1e-9 else np.nan
+    out[_J["htop_mpi_inf_3dhp"]] = ear_c + head_top_height * normalize(up) if np.linalg.norm(up) > 1e-9 else np.nan
     vis[_J["htop_mpi_inf_3dhp"]] = min(v_ear, v_eye)
     out[~(vis >= min_visibility)] = np.nan
     return out

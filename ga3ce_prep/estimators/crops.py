@@ -8,11 +8,13 @@ that reports "continuous" coordinates (0 at the left edge of the first pixel, th
 the right edge of the last) is converted with `continuous_to_index` before the inverse affine.
 
 Parts of a crop outside the image are padded with zeros (the letterbox: the aspect ratio is kept
-and what the image lacks is filled).
+and what the image lacks is filled; `letterbox_roi` is the whole image's), or with the image's
+border pixels repeated (BlazePose's landmark crop).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -29,13 +31,18 @@ class SquareRoi:
     angle: float = 0.0
 
 
+def rotation_2d(angle: float) -> np.ndarray:
+    """(2, 2) rotation by `angle` radians in image axes (x right, y down: a positive angle turns
+    clockwise on screen). R(angle) maps a ROI's axes to the image's."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s], [s, c]])
+
+
 def roi_affine(roi: SquareRoi, out_size: int) -> np.ndarray:
     """The (2, 3) float64 affine taking image pixels to the pixels of an out_size x out_size crop
     of `roi` (both index coordinates): crop = L @ image + t, with L = s R(-angle), s = out_size /
     roi.size. The ROI's centre lands on the crop's centre, (out_size - 1) / 2."""
-    s = out_size / float(roi.size)
-    c, sn = np.cos(roi.angle), np.sin(roi.angle)
-    L = s * np.array([[c, sn], [-sn, c]])
+    L = (out_size / float(roi.size)) * rotation_2d(roi.angle).T
     t = 0.5 * (out_size - 1) - L @ np.asarray(roi.center, np.float64)
     return np.concatenate([L, t[:, None]], axis=1)
 
@@ -59,13 +66,19 @@ def continuous_to_index(points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float64) - 0.5
 
 
-def crop(image: np.ndarray, roi: SquareRoi, out_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """The out_size x out_size bilinear crop of `roi` from an (H, W[, C]) image, zeros outside the
-    image, and its image->crop affine (2, 3). Downscaling by more than about 2 aliases (bilinear
-    taps, no prefilter); the models' crops of a face or head stay near 1x-3x."""
+BORDERS = {"zero": cv2.BORDER_CONSTANT, "replicate": cv2.BORDER_REPLICATE}
+
+
+def crop(image: np.ndarray, roi: SquareRoi, out_size: int,
+         border: Literal["zero", "replicate"] = "zero") -> tuple[np.ndarray, np.ndarray]:
+    """The out_size x out_size bilinear crop of `roi` from an (H, W[, C]) image (same dtype), and
+    its image->crop affine (2, 3). Outside the image: zeros, or the nearest border pixel
+    ("replicate"). Downscaling by more than about 2 aliases (bilinear taps, no prefilter); the
+    models' crops of a face or head stay near 1x-3x, the letterbox of a 1920-wide frame to 224
+    does not (the person detector was trained on such inputs)."""
     M = roi_affine(roi, out_size)
-    out = cv2.warpAffine(image, M, (out_size, out_size), flags=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = cv2.warpAffine(image, M, (out_size, out_size), flags=cv2.INTER_LINEAR, borderMode=BORDERS[border],
+                         borderValue=0)
     return out, M
 
 
@@ -76,4 +89,12 @@ def box_roi(box: np.ndarray, scale: float) -> SquareRoi:
     return SquareRoi(np.array([0.5 * (x1 + x2), 0.5 * (y1 + y2)]), scale * max(x2 - x1, y2 - y1), 0.0)
 
 
-__all__ = ["SquareRoi", "apply_affine", "box_roi", "continuous_to_index", "crop", "invert_affine", "roi_affine"]
+def letterbox_roi(hw: tuple[int, int]) -> SquareRoi:
+    """The upright square around a whole (H, W) image (its pixels' outer edges): cropping it
+    letterboxes the image, the aspect ratio kept, centred, bars where the image is shorter."""
+    h, w = hw
+    return box_roi(np.array([-0.5, -0.5, w - 0.5, h - 0.5]), 1.0)
+
+
+__all__ = ["BORDERS", "SquareRoi", "apply_affine", "box_roi", "continuous_to_index", "crop", "invert_affine",
+           "letterbox_roi", "roi_affine", "rotation_2d"]

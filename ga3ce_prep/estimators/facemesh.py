@@ -36,7 +36,7 @@ from ..geometry import look_at_rotation, normalize, pixel_ray
 from ..params import param
 from .crops import SquareRoi, apply_affine, box_roi, continuous_to_index, crop, invert_affine
 from .litert import LiteModel, LiteParams, LiteTensor
-from .ssd import decode_regressors, sigmoid, ssd_anchors, weighted_nms
+from .ssd import decode_detections, sigmoid, ssd_anchors
 
 DETECTOR_SIZE = 128
 DETECTOR_STRIDES = (8, 16, 16, 16)
@@ -139,16 +139,10 @@ class FaceMeshEstimator:
         o = self.options
         tensor, M = crop(check_rgb(rgb), box_roi(head_box, o.box_scale), DETECTOR_SIZE)
         out = self.detector(tensor[None].astype(np.float32) / 127.5 - 1.0)
-        scores = sigmoid(out["classificators"][0, :, 0])
-        keep = scores >= o.min_detection_score
-        if not keep.any():
-            return []
-        boxes, kps = decode_regressors(out["regressors"][0][keep], self.anchors[keep], DETECTOR_SIZE, N_KEYPOINTS)
-        boxes, kps, best = weighted_nms(boxes, kps, scores[keep], o.nms_iou)
-        to_image = invert_affine(M)  # the detector crop is upright: boxes stay axis-aligned
-        corners = apply_affine(to_image, continuous_to_index(boxes.reshape(-1, 2, 2) * DETECTOR_SIZE))
-        kps = apply_affine(to_image, continuous_to_index(kps * DETECTOR_SIZE))
-        return [FaceDetection(corners[i].reshape(4), kps[i], float(best[i])) for i in range(len(best))]
+        boxes, kps, scores = decode_detections(out["regressors"][0], out["classificators"][0], self.anchors,
+                                               DETECTOR_SIZE, N_KEYPOINTS, invert_affine(M), o.min_detection_score,
+                                               o.nms_iou)
+        return [FaceDetection(boxes[i], kps[i], float(scores[i])) for i in range(len(scores))]
 
     def landmarks(self, rgb: np.ndarray, roi: SquareRoi) -> tuple[np.ndarray, float]:
         """The mesh in `roi`: landmarks (468, 3) float32 image pixels (x, y, z as in

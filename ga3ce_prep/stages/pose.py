@@ -3,7 +3,8 @@ camera frame. A failure degrades the frame (NaN pose); GA3CE then runs without t
 
 Backends: `precomputed` (an offline estimator's output, stages/precomputed.py layout), `oracle`
 (the synthetic truth plus estimator-like seeded noise, stages/oracle_noise.py `noisy_pose`) and
-`blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/blazepose.py).
+`blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/blazepose.py; it
+reads the depth stage's map, so it runs in the geometry task).
 """
 from __future__ import annotations
 
@@ -13,13 +14,12 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import ModelFileError
 from ..estimators.blazepose import BlazePoseOptions, place_landmarks
 from ..estimators.blazepose_smpl import to_smpl_head30
-from ..frames import FrameRef, load_rgb
+from ..frames import DepthMap, FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
-from .base import PoseBackend
+from .base import PoseBackend, ProcessEstimator
 from .oracle_noise import frame_rng, noisy_pose
 from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
@@ -69,14 +69,17 @@ class OraclePose(PoseBackend):
                           p.scale_sigma, p.scale_bias, p.offset_sigma)
 
 
-class BlazePose(PoseBackend):
+class BlazePose(ProcessEstimator, PoseBackend):
     """BlazePose GHUM (full or heavy, LiteRT) on the frame's image: the person matching the frame's
     body box (else the one around its head box, else the best detection), world landmarks
-    placed in the camera frame by a 2D fit through K (no depth yet: the stage depends on `input`
-    only; `place_landmarks` takes a depth map once the DAG passes one), mapped to smpl+head_30
-    (estimators/blazepose_smpl.py). No person: FrameError (the frame keeps a NaN pose)."""
+    placed in the camera frame by a 2D fit through K, their distance then taken from the depth
+    stage's map at the visible landmarks (`depth_refine`; `placement.refine_with_depth`), mapped
+    to smpl+head_30 (estimators/blazepose_smpl.py). No person: FrameError (the frame keeps a NaN
+    pose)."""
 
     name = "blazepose"
+    version = "2"  # 2: depth-refined placement
+    needs = ("depth",)
 
     @dataclass(frozen=True, kw_only=True)
     class Params(BlazePoseOptions):
@@ -84,41 +87,28 @@ class BlazePose(PoseBackend):
         min_visibility: float = param(0.5, minimum=0, maximum=1)  # landmark visibility below which a joint is NaN and left out of the 2D fit
         head_top_height: float = param(0.12, minimum=0)  # metres from the ear midpoint up to the head top (BlazePose has no head-top landmark)
         ray_alignment: bool = True  # turn the world landmarks so their z is the ray through the visible landmarks (the model sees the person along it); false: MediaPipe's image-aligned axes
+        depth_refine: bool = True  # take the pose's distance (metres) from the depth map at the visible landmarks, body joints 5 cm behind the measured surface: the world landmarks have an average adult's size, so the 2D fit alone is off by the size error times the distance (10% is 30 cm at 3 m); false: the 2D fit only (the map is still passed)
 
     def _keys(self) -> tuple[str, str]:
         return "pose_detection", f"pose_landmark_{self.p.variant}"
 
     def check(self) -> None:
         """Before any work: both registry files are fetched and have their pinned SHA-256."""
-        from ..registry_models import model_path, verify
+        from .. import registry_models
 
         for key in self._keys():
-            path = model_path(key)  # ModelFileError naming `ga3ce-prep models fetch` when missing
-            if not verify(key):
-                raise ModelFileError(f"stages.pose: registry model {key!r} at {path} does not have its pinned "
-                                     "SHA-256 (damaged or replaced): refused; run `ga3ce-prep models fetch` "
-                                     "to fetch it again")
+            registry_models.require(key, f"stages.pose.backend {self.name}")
 
-    def warm(self) -> None:
-        self.estimator()
+    def build_estimator(self):
+        from ..estimators.blazepose import BlazePoseEstimator
+        from ..registry_models import model_path
 
-    def estimator(self):
-        """The process's detector and landmark interpreters (built once, on first use)."""
-        if getattr(self, "_estimator", None) is None:
-            from ..estimators.blazepose import BlazePoseEstimator
-            from ..registry_models import model_path
+        return BlazePoseEstimator(*(model_path(k) for k in self._keys()), self.p)
 
-            det, lmk = (model_path(k) for k in self._keys())
-            self._estimator = BlazePoseEstimator(det, lmk, self.p)
-        return self._estimator
-
-    def __getstate__(self):  # interpreters stay in the process that made them (dask workers rebuild theirs)
-        state = dict(self.__dict__)
-        state.pop("_estimator", None)
-        return state
-
-    def pose(self, frame: FrameRef) -> np.ndarray:
+    def pose(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
+        """depth: the depth stage's map of the frame, at the image's resolution."""
         p = self.p
         lm = self.estimator()(load_rgb(frame.image_path), frame.body_box, frame.head_box)
-        cam = place_landmarks(lm, np.asarray(frame.K, np.float64), p.min_visibility, p.ray_alignment)
+        measured = {"depth": depth.depth, "valid": depth.valid} if p.depth_refine else {}
+        cam = place_landmarks(lm, np.asarray(frame.K, np.float64), p.min_visibility, p.ray_alignment, **measured)
         return to_smpl_head30(cam, lm.visibility, p.min_visibility, p.head_top_height).astype(np.float32)
