@@ -97,9 +97,20 @@ class Backend:
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")
         self.ctx = ctx
 
+    def registry_keys(self) -> tuple[str, ...]:
+        """The registry models (`registry_models` keys) this backend runs: `check()` verifies their
+        SHA-256 and `provenance()` records it. Default: none."""
+        return ()
+
     def check(self) -> None:
         """Validate once before any work (files readable, keys present); raise ConfigError or
-        ModelFileError naming the pipeline key and the fix. Default: nothing to check."""
+        ModelFileError naming the pipeline key and the fix. Default: the registry models are
+        fetched and have their pinned SHA-256."""
+        if self.registry_keys():
+            from ..registry_models import require
+
+            for key in self.registry_keys():
+                require(key, f"stages.{self.stage}.backend {self.name}")
 
     def warm(self) -> None:
         """Import heavy libraries / load models ahead of the first frame (dask workers call it once
@@ -108,8 +119,13 @@ class Backend:
     def provenance(self) -> dict[str, Any]:
         """What the backend adds to its stage's store provenance (run on the driver, after check()):
         "models" {path: SHA-256} of model files that are not file parameters (e.g. the registry's),
-        and anything it derives from its files (objects/mobilesam's "mask_mode"). Default: nothing."""
-        return {}
+        and anything it derives from its files (objects/mobilesam's "mask_mode"). Default: the
+        registry models' pinned SHA-256."""
+        if not self.registry_keys():
+            return {}
+        from ..registry_models import MODELS, file_path
+
+        return {"models": {str(file_path(k)): MODELS[k][1].sha256 for k in self.registry_keys()}}
 
 
 class ProcessEstimator:

@@ -73,24 +73,25 @@ class FastDepth(ProcessEstimator, DepthBackend):
     collapse to about 1-1.5 m): docs/models.md."""
 
     name = "fastdepth"
-    MODEL = "fastdepth"  # registry_models key
 
     @dataclass(frozen=True, kw_only=True)
     class Params(RuntimeParams):
         """RuntimeParams: ONNX Runtime providers and threads."""
 
+    def registry_keys(self) -> tuple[str, ...]:
+        return ("fastdepth",)
+
     def check(self) -> None:
-        from .. import registry_models
         from ..estimators.onnx_runtime import resolve_providers
 
-        registry_models.require(self.MODEL, f"stages.depth.backend {self.name}")
+        super().check()
         resolve_providers(self.p.providers)
 
     def build_estimator(self):
         from ..estimators.fastdepth import FastDepthEstimator
         from ..registry_models import model_path
 
-        return FastDepthEstimator(model_path(self.MODEL), self.p)
+        return FastDepthEstimator(model_path("fastdepth"), self.p)
 
     def depth(self, frame: FrameRef) -> DepthMap:
         rgb = load_rgb(frame.image_path)

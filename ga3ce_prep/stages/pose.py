@@ -89,21 +89,14 @@ class BlazePose(ProcessEstimator, PoseBackend):
         ray_alignment: bool = True  # turn the world landmarks so their z is the ray through the visible landmarks (the model sees the person along it); false: MediaPipe's image-aligned axes
         depth_refine: bool = True  # take the pose's distance (metres) from the depth map at the visible landmarks, body joints 5 cm behind the measured surface: the world landmarks have an average adult's size, so the 2D fit alone is off by the size error times the distance (10% is 30 cm at 3 m); false: the 2D fit only (the map is still passed)
 
-    def _keys(self) -> tuple[str, str]:
+    def registry_keys(self) -> tuple[str, ...]:
         return "pose_detection", f"pose_landmark_{self.p.variant}"
-
-    def check(self) -> None:
-        """Before any work: both registry files are fetched and have their pinned SHA-256."""
-        from .. import registry_models
-
-        for key in self._keys():
-            registry_models.require(key, f"stages.pose.backend {self.name}")
 
     def build_estimator(self):
         from ..estimators.blazepose import BlazePoseEstimator
         from ..registry_models import model_path
 
-        return BlazePoseEstimator(*(model_path(k) for k in self._keys()), self.p)
+        return BlazePoseEstimator(*(model_path(k) for k in self.registry_keys()), self.p)
 
     def pose(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
         """depth: the depth stage's map of the frame, at the image's resolution."""

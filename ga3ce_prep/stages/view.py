@@ -86,7 +86,6 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
     "pose"). With neither, the frame fails with FrameError (and is dropped)."""
 
     name = "facemesh"
-    MODELS = ("face_detection", "face_landmark")  # registry_models keys: BlazeFace short-range, face mesh
     needs = ("pose",)
     sources = ("face", "pose")
 
@@ -94,17 +93,14 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
     class Params(FaceMeshOptions):
         pose_fallback: bool = True  # no face visible: v = the pose's head direction (ears to nose); false: the frame fails
 
-    def check(self) -> None:
-        from .. import registry_models
-
-        for key in self.MODELS:
-            registry_models.require(key, f"stages.view.backend {self.name}")
+    def registry_keys(self) -> tuple[str, ...]:
+        return "face_detection", "face_landmark"  # BlazeFace short-range, the face mesh
 
     def build_estimator(self):
         from ..estimators.facemesh import FaceMeshEstimator
         from ..registry_models import model_path
 
-        return FaceMeshEstimator(*(model_path(k) for k in self.MODELS), self.p)
+        return FaceMeshEstimator(*(model_path(k) for k in self.registry_keys()), self.p)
 
     def view(self, frame: FrameRef, pose: np.ndarray) -> Sourced:
         """pose: (30, 3) the pose stage's output for the frame (NaN where it failed)."""
