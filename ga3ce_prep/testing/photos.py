@@ -23,9 +23,11 @@ def photo(name: str) -> np.ndarray:
 
 
 def K_from_hfov(width: int, height: int, hfov_deg: float = 60.0) -> np.ndarray:
-    """(3, 3) intrinsics with fx = fy = (width / 2) / tan(hfov / 2), principal point at the centre."""
-    f = 0.5 * width / np.tan(np.radians(hfov_deg) / 2)
-    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    """(3, 3) intrinsics of a horizontal field of view, principal point at the image centre
+    (`predict.intrinsics`)."""
+    from ..predict import intrinsics
+
+    return intrinsics((width, height), hfov_deg)
 
 
 def mirrored(img: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
