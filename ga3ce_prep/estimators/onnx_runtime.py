@@ -5,12 +5,13 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
-
-import onnxruntime as ort
+from typing import TYPE_CHECKING, Sequence
 
 from ..errors import ConfigError, ModelFileError
 from ..params import param
+
+if TYPE_CHECKING:  # onnxruntime is imported where a session is made: loading the params stays light
+    import onnxruntime as ort
 
 Dim = int | str | None  # int: that size; str: any size (a named, dynamic axis); None: any size
 
@@ -54,6 +55,8 @@ def resolve_providers(providers: str | Sequence[str] | None) -> list[str]:
         providers = ["cpu"]
     if isinstance(providers, str):
         providers = [p.strip() for p in providers.split(",") if p.strip()]
+    import onnxruntime as ort
+
     wanted = [short.get(p.lower(), p) for p in providers]
     available = ort.get_available_providers()
     for p in wanted:
@@ -69,6 +72,8 @@ def resolve_providers(providers: str | Sequence[str] | None) -> list[str]:
 
 def session_options(threads: int) -> ort.SessionOptions:
     """Session options: `threads` intra-op threads, one inter-op thread, every graph optimisation."""
+    import onnxruntime as ort
+
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
@@ -91,6 +96,8 @@ def create_session(model: str | Path | bytes, providers: Sequence[str], threads:
             raise ModelFileError(f"{what} ONNX file not found: {path}")
         model = str(path)
     try:
+        import onnxruntime as ort
+
         return ort.InferenceSession(model, session_options(threads), providers=list(providers),
                                     disabled_optimizers=list(disabled_optimizers) or None)
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
