@@ -32,6 +32,7 @@ from .stages import DROPS_FRAME, call_backend, dependency_order
 from .stages.base import FrameObjects, Sourced
 
 DEFAULT_PIPELINE = "folder-real"
+DEFAULT_FOV = 60.0  # degrees, horizontal: an ordinary webcam or phone camera, when K is unknown
 NO_DEPTH = {"stages.depth": {"backend": "fastdepth"}}  # the default pipeline without a depth file
 
 
@@ -156,7 +157,7 @@ class Predictor:
         return self._backends[has_depth]
 
     def __call__(self, image: str | Path, head_box: Sequence[float], *, depth: str | Path | None = None,
-                 depth_scale: float = 1.0, fov: float | None = 60.0, K: Sequence | str | Path | None = None,
+                 depth_scale: float = 1.0, fov: float | None = DEFAULT_FOV, K: Sequence | str | Path | None = None,
                  body_box: Sequence[float] | None = None) -> Prediction:
         """Predict one frame: image file, head box (x1, y1, x2, y2) px, optional depth file."""
         from PIL import Image
@@ -245,7 +246,7 @@ def _box(value: str | None) -> tuple[float, ...] | None:
               help="Metres per depth unit (default: 0.001 for PNG, 1 for .npy).")
 @click.option("--intrinsics", "K", default=None, type=click.Path(dir_okay=False, exists=True),
               help='Camera intrinsics JSON: {"fx", "fy", "cx", "cy"} or {"K": 3x3}.')
-@click.option("--fov", default=60.0, show_default=True, help="Horizontal field of view in degrees, when no --intrinsics.")
+@click.option("--fov", default=DEFAULT_FOV, show_default=True, help="Horizontal field of view in degrees, when no --intrinsics.")
 @click.option("--checkpoint", "-c", default=None, type=click.Path(dir_okay=False, exists=True),
               help="A GA3CE checkpoint (best.pt) to predict the gaze g; without it only the 3D context and v.")
 @click.option("--pipeline", "-p", default=DEFAULT_PIPELINE, show_default=True,
