@@ -11,6 +11,7 @@ export MKL_NUM_THREADS ?= $(THREADS)
 DATASET ?= synthetic
 DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
+MODELS  ?= models
 
 .PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects clean
 
@@ -31,9 +32,9 @@ demo: setup
 test: setup models
 	$(VENV)/bin/pytest -q
 
-## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr]
+## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr] [MODELS=dir of your model files]
 prep: setup
-	$(CLI) run --pipeline pipelines/$(DATASET).yaml --data $(DATA) --out $(OUT)
+	$(CLI) run --pipeline pipelines/$(DATASET).yaml --data $(DATA) --out $(OUT) --models $(MODELS)
 
 ## make schema: regenerate schemas/pipeline.schema.json from the backends' Params dataclasses.
 schema: setup

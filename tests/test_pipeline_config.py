@@ -107,3 +107,16 @@ def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
     np.testing.assert_allclose(st.frames["pose"][j], truth.get(ids[0], maps=False).pose, atol=1e-6)
     assert st.failures["action"].tolist() == ["degraded"]
     assert "not in" in st.failures["message"][0]
+
+
+def test_model_files_resolve_against_the_models_folder(tmp_path, monkeypatch):
+    enc, dec = tmp_path / "m" / "enc.onnx", tmp_path / "m" / "dec.onnx"
+    over = {"stages.objects": {"backend": "mobilesam", "params": {"encoder": "{models}/enc.onnx",
+                                                                  "decoder": "{models}/dec.onnx"}}}
+    conf = load_pipeline(_base(), tmp_path, overrides=over, check_files=False, models=tmp_path / "m")
+    assert conf.stages["objects"].model_files == {"encoder": enc, "decoder": dec}
+    monkeypatch.setenv("GA3CE_MODEL_DIR", str(tmp_path / "m"))
+    conf = load_pipeline(_base(), tmp_path, overrides=over, check_files=False)
+    assert conf.stages["objects"].model_files["encoder"] == enc
+    with pytest.raises(ModelFileError, match=r"stages.objects.params.encoder: model file .*m/enc.onnx does not exist"):
+        load_pipeline(_base(), tmp_path, overrides=over)

@@ -28,10 +28,12 @@ import click
               help="Work directory for the lock, the stage cache and finalize's scratch. Default: <out>.work")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
+@click.option("--models", "-m", type=click.Path(file_okay=False), default=None,
+              help="Folder of your model files, `{models}` in pipeline files. Default: $GA3CE_MODEL_DIR, else ./models.")
 @click.option("--summary-json", type=click.Path(dir_okay=False), default=None,
               help="Also write the run summary as JSON to this file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overrides, summary_json, quiet):
+def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overrides, models, summary_json, quiet):
     """Preprocess a dataset into a 3D context store (staged, cached, resumable).
 
     Every check (pipeline schema, backends, model and data files, dataset layout, the output's lock)
@@ -46,7 +48,7 @@ def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overri
     from .run import run_pipeline
 
     s = run_pipeline(pipeline, data, out, workers=workers, scheduler=scheduler, shard_size=shard_size,
-                     limit=limit, work_dir=work, overrides=list(overrides), progress=not quiet)
+                     limit=limit, work_dir=work, overrides=list(overrides), models=models, progress=not quiet)
     click.echo(s.format())
     if summary_json:
         Path(summary_json).write_text(json.dumps(s.as_dict(), indent=2))

@@ -3,13 +3,15 @@
 file parameters, and check everything a run needs before any work.
 
 Every error names the pipeline key at fault (e.g. `stages.view.params.mean_error_deg`) and the fix.
-File parameters ("x-file" in the schema) may use `{data}` for the dataset root (`--data`); other
-relative paths are relative to the current directory.
+File parameters ("x-file" in the schema) may use `{data}` for the dataset root (`--data`) and
+`{models}` for the folder of the user's model files (`--models`, else $GA3CE_MODEL_DIR, else
+./models); other relative paths are relative to the current directory.
 """
 from __future__ import annotations
 
 import copy
 import hashlib
+import os
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -121,16 +123,23 @@ def _defaults(props: dict[str, Any]) -> dict[str, Any]:
     return {k: copy.deepcopy(v["default"]) for k, v in props.items() if "default" in v}
 
 
-def _resolve(value: str, data_root: Path) -> Path:
-    p = Path(str(value).replace("{data}", str(data_root)))
+def model_dir(models: str | Path | None = None) -> Path:
+    """The folder `{models}` stands for: `models`, else $GA3CE_MODEL_DIR, else ./models."""
+    return Path(models or os.environ.get("GA3CE_MODEL_DIR") or "models").resolve()
+
+
+def _resolve(value: str, data_root: Path, models: Path) -> Path:
+    p = Path(str(value).replace("{data}", str(data_root)).replace("{models}", str(models)))
     return p if p.is_absolute() else (Path.cwd() / p)
 
 
 def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
-                  overrides: list[str] | dict[str, Any] | None = None, check_files: bool = True) -> PipelineConfig:
+                  overrides: list[str] | dict[str, Any] | None = None, check_files: bool = True,
+                  models: str | Path | None = None) -> PipelineConfig:
     """Load and validate a pipeline (a file, a bundled name, or an already-parsed dict).
 
-    Fills in defaults, resolves file parameters against data_root, and (check_files) checks that
+    Fills in defaults, resolves file parameters against data_root and the model folder (`models`,
+    module docstring), and (check_files) checks that
     every backend is available and every named file exists: ConfigError/ModelFileError otherwise,
     before any work.
     """
@@ -166,7 +175,7 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
         for name, spec in props.items():
             kind = spec.get("x-file")
             if kind and name in params and params[name] is not None:
-                p = _resolve(params[name], data_root)
+                p = _resolve(params[name], data_root, model_dir(models))
                 resolved[name] = p
                 (model_files if kind == "model" else data_files)[name] = p
         stages[stage] = StageConfig(stage, backend, resolved, data_files, model_files)

@@ -121,7 +121,8 @@ def shard_keys(conf: PipelineConfig, frames: list[FrameRef], data_root: Path,
 def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: str | Path, *,
                  workers: int | None = None, scheduler: str | None = None, shard_size: int | None = None,
                  limit: int | None = None, work_dir: str | Path | None = None,
-                 overrides: list[str] | dict[str, Any] | None = None, progress: bool = True) -> RunSummary:
+                 overrides: list[str] | dict[str, Any] | None = None, models: str | Path | None = None,
+                 progress: bool = True) -> RunSummary:
     """Preprocess the dataset at `data` with `pipeline` into the store `out` (module docstring).
 
     pipeline: a pipeline file, a bundled name ("synthetic", "gfie", ...), or a parsed dict.
@@ -132,7 +133,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     """
     t0 = time.perf_counter()
     data_root = Path(data).resolve()
-    conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers)
+    conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models)
     frames = _open_frames(conf, data_root, limit)
     work = Path(work_dir) if work_dir else Path(f"{out_path}.work")
     with RunLock(work, str(out_path)):
@@ -154,9 +155,9 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
 
 def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
                     overrides: list[str] | dict[str, Any] | None, shard_size: int | None,
-                    workers: int | None) -> tuple[PipelineConfig, Path]:
+                    workers: int | None, models: str | Path | None = None) -> tuple[PipelineConfig, Path]:
     """The validated pipeline (run options applied) and the output's absolute path."""
-    conf = load_pipeline(pipeline, data_root, overrides)
+    conf = load_pipeline(pipeline, data_root, overrides, models=models)
     if shard_size is not None:
         if shard_size < 1:
             raise ConfigError(f"--shard-size must be at least 1, not {shard_size}")
