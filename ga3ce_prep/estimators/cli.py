@@ -1,6 +1,9 @@
 """`ga3ce-prep export-mobilesam`: a trained MobileSAM checkpoint -> the two ONNX files the
 `objects/mobilesam` backend reads. It imports the MobileSAM code the user has installed (the official
-repository, or the `mobilesam-mirror` package) and torch; none of that code is part of ga3ce-prep."""
+repository, or the `mobilesam-mirror` package) and torch; none of that code is part of ga3ce-prep.
+
+`ga3ce-prep export-gfie-view`: GFIE's checkpoint -> its head network as one ONNX file for
+`view/onnx` (the network is ours, estimators/gfie_head.py; only torch is needed)."""
 from __future__ import annotations
 
 import functools
@@ -82,3 +85,22 @@ def export_mobilesam(checkpoint: Path, out_dir: Path, opset: int, check: bool) -
         err = MobileSamSegmenter(enc, dec, verify=False).verify()
         click.echo(f"interfaces OK; fast decoder matches the exported decoder to {err:.1e}")
         click.echo(f"sha256 encoder {file_sha256(enc)}\nsha256 decoder {file_sha256(dec)}")
+
+
+@click.command("export-gfie-view")
+@click.option("--checkpoint", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="GFIE's checkpoint (gfiemodel.pt.tar from GFIE's README; a dict with the GFIENet state_dict).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The ONNX file to write (its folder is created if missing).")
+@click.option("--opset", type=int, default=17, show_default=True, help="ONNX opset of the export.")
+def export_gfie_view(checkpoint: Path, out: Path, opset: int) -> None:
+    """Export GFIE's head network (its EGD module) to ONNX: input "image" [N, 3, 224, 224], output
+    "gaze" [N, 3] unit, camera frame; `view: onnx` reads it with its default parameters.
+
+    \b
+      stages: {view: {backend: onnx, params: {model: OUT}}}
+    """
+    from .gfie_head import export_onnx
+    from .onnx_runtime import file_sha256
+
+    click.echo(f"wrote {export_onnx(checkpoint, out, opset)}\nsha256 {file_sha256(out)}")

@@ -63,7 +63,9 @@ BACKENDS: dict[str, str | Planned] = {
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
     "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
-    "view/onnx": Planned("a head-crop (GFIE) or 7-frame head-body (GAFA) view network through ONNX Runtime"),
+    "view/gfie": "ga3ce_prep.stages.view:GFIEView",
+    "view/onnx": "ga3ce_prep.stages.view:OnnxView",
+    "view/gafa": Planned("GAFA's 7-frame head-body view network through ONNX Runtime"),
 }
 
 

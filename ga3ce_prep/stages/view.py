@@ -4,18 +4,23 @@ estimate). A failure drops the frame: GA3CE has nothing to refine without v.
 Backends: `precomputed` (stages/precomputed.py layout), `oracle` (the synthetic truth gaze,
 optionally pulled toward the head direction, plus noise calibrated to a mean angular error:
 stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees),
-and `facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
-estimators/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate).
+`facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
+estimators/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate),
+`gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/gfie_head.py) and
+`onnx` (any head-crop network exported to ONNX, GFIE's crop recipe by default:
+estimators/head_onnx.py).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from ..errors import FrameError
+from ..errors import ConfigError, FrameError
 from ..estimators.facemesh import FaceMeshOptions
+from ..estimators.head_onnx import HeadOnnxOptions
 from ..frames import FrameRef, load_rgb
 from ..geometry import normalize
 from ..params import param
@@ -114,3 +119,62 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
             if not ok[0]:
                 raise FrameError(f"{no_face}; and the pose has no nose and ears to fall back on") from None
             return Sourced(d[0].astype(np.float32), "pose")
+
+
+GFIE_HINT = ("GFIE's released checkpoint (gfiemodel.pt.tar, linked from the README of github.com/nkuhzx/GFIE); "
+             "docs/models.md, GFIE's head network")
+ONNX_HINT = "export your head-crop network to ONNX (docs/models.md, view: onnx; GFIE's: ga3ce-prep export-gfie-view)"
+
+
+class GFIEView(ProcessEstimator, ViewBackend):
+    """v = GFIE's head-image gaze network (its EGD module) on GFIE's head crop of the frame's head
+    box, in torch, with the weights of GFIE's released checkpoint (estimators/gfie_head.py)."""
+
+    name = "gfie"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params:
+        checkpoint: Path = param(file="model", hint=GFIE_HINT)  # GFIE's checkpoint (a dict with the whole GFIENet's state_dict); only its head network, egd_module.*, is read
+        device: Literal["cpu", "cuda"] = "cpu"  # torch device of the network
+        threads: int = param(1, minimum=1)  # torch intra-op threads per process
+
+    def check(self) -> None:
+        """Before any work: the device exists and the checkpoint holds GFIE's head network."""
+        import torch
+
+        from ..estimators.gfie_head import load_gfie_head
+
+        if self.p.device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("stages.view.params.device: cuda, but this torch build sees no CUDA device (use cpu)")
+        load_gfie_head(self.p.checkpoint)
+
+    def build_estimator(self):
+        from ..estimators.gfie_head import GFIEHeadEstimator
+
+        return GFIEHeadEstimator(self.p.checkpoint, self.p.device, self.p.threads)
+
+    def view(self, frame: FrameRef) -> np.ndarray:
+        return self.estimator().estimate(load_rgb(frame.image_path), frame.head_box)
+
+
+class OnnxView(ProcessEstimator, ViewBackend):
+    """v = a head-crop network exported to ONNX: the crop recipe, the output and its axes as
+    parameters (GFIE's crop and our camera frame by default), normalised (estimators/head_onnx.py)."""
+
+    name = "onnx"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(HeadOnnxOptions):
+        model: Path = param(file="model", hint=ONNX_HINT)  # the ONNX file: one float32 image input, a (1, 3) direction output
+
+    def check(self) -> None:
+        """Before any work: the axes, the providers and the file's interface."""
+        self.build_estimator()
+
+    def build_estimator(self):
+        from ..estimators.head_onnx import HeadOnnxEstimator
+
+        return HeadOnnxEstimator(self.p.model, self.p)
+
+    def view(self, frame: FrameRef) -> np.ndarray:
+        return self.estimator().estimate(load_rgb(frame.image_path), frame.head_box)
