@@ -306,3 +306,12 @@ def test_gfie_estimator_on_one_frame_equals_the_network_on_gfies_crop(gfie_net, 
         expected = gfie_net(torch.from_numpy(head_input(img, box)))[0].numpy()
     assert v.dtype == np.float32
     np.testing.assert_allclose(v, expected, atol=1e-6)
+
+
+def test_a_network_that_gives_no_direction_fails_the_frame(ckpt_path):
+    est = GFIEHeadEstimator(ckpt_path)
+    with torch.no_grad():
+        est.net.fc[2].weight.zero_()
+        est.net.fc[2].bias.zero_()
+    with pytest.raises(FrameError, match="not a direction"):
+        est.estimate(uniform_image(120, 160), np.array([40, 30, 70, 80]))

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import ModelFileError
+from ..errors import FrameError, ModelFileError
 from .head_crop import CropParams, head_input
 from .resnet import ResNet50
 
@@ -118,10 +118,14 @@ class GFIEHeadEstimator:
 
     def estimate(self, rgb: np.ndarray, box: np.ndarray) -> np.ndarray:
         """v for the head in box (4,) x1, y1, x2, y2 pixels of an (H, W, 3) uint8 RGB image:
-        (3,) float32 unit, camera frame."""
+        (3,) float32 unit, camera frame. FrameError if the network gives no direction (a zero or
+        non-finite vector)."""
         x = torch.from_numpy(head_input(rgb, box, CropParams())).to(self.device)
         with torch.inference_mode():
-            return self.net(x)[0].cpu().numpy().astype(np.float32)
+            v = self.net(x)[0].cpu().numpy().astype(np.float32)
+        if not abs(float(np.linalg.norm(v)) - 1) < 1e-3:
+            raise FrameError(f"GFIE's head network gave {v.tolist()}, not a direction")
+        return v
 
 
 def export_onnx(checkpoint: str | Path, out: str | Path, opset: int = 17) -> Path:
