@@ -64,7 +64,8 @@ BACKENDS: dict[str, str | Planned] = {
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
     "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
-    "view/onnx": Planned("a head-crop (GFIE) or 7-frame head-body (GAFA) view network through ONNX Runtime"),
+    "view/gafa": "ga3ce_prep.stages.view:GafaView",
+    "view/onnx": Planned("a head-crop (GFIE) view network through ONNX Runtime"),
 }
 
 

@@ -7,7 +7,7 @@ WORLD_640 = dict(scenes=4, frames_per_scene=2, seed=6, width=640)
 # GAFA format for the temporal windows: 2 scenes x 10 frames (6 camera sequences of raw frames
 # 0-9; tests/conftest.py removes GAFA_GAP (camera sequence, raw frame) to make a gap).
 GAFA_WORLD = dict(scenes=2, frames_per_scene=10, seed=5, width=160)
-GAFA_GAP = ("library/1029_2/Camera2_0", 5)
+GAFA_GAP = ("library/1029_2/Camera2_0", 1)
 # the bundled pipelines with the geometric segmenter's grid scaled to 160x120 frames
 SMALL = ["stages.objects.params.stride=1"]
 
