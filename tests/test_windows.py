@@ -142,7 +142,8 @@ def test_a_windowed_stage_key_follows_its_neighbours_only(probe, synth_gafa_worl
         after = _make_shards(conf, frames, synth_gafa_world)
     finally:
         os.utime(f.image_path, ns=(st.st_atime_ns, st.st_mtime_ns))
-    changed = {(i, stage) for i, (a, b) in enumerate(zip(before, after)) for stage in a.keys if a.keys[stage] != b.keys[stage]}
+    changed = {(i, stage) for i, (a, b) in enumerate(zip(before, after))
+               for stage in a.keys if a.keys[stage] != b.keys[stage]}
     # shards 0 and 2: only the view, which read the frame as a neighbour; shard 1: everything (its
     # own frame); every later shard: nothing
     assert {st for i, st in changed if i in (0, 2)} == {"view"}
