@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FrameError
 from ..datasets.gafa import WINDOW
+from ..errors import FrameError
 from ..estimators.facemesh import FaceMeshOptions
 from ..estimators.onnx_runtime import RuntimeParams
 from ..frames import FrameRef, Window, load_rgb
@@ -155,8 +155,8 @@ class GafaView(ProcessEstimator, ViewBackend):
                              f"raw frame(s) {missing} missing (GAFA uses only runs of {WINDOW} consecutive frames)")
         seq = [window.previous, *window.frames]
         if any(f.keypoints_2d is None for f in seq):
-            raise FrameError(f"view/gafa needs OpenPose BODY_25 keypoints (the gafa adapter); "
-                             f"frame {frame.id} has none")
+            raise FrameError(f"view/gafa needs OpenPose BODY_25 keypoints (the gafa adapter); a frame of "
+                             f"the window around {frame.id} has none")
         head, body = preprocessed_boxes(np.stack([f.keypoints_2d for f in seq]))
         if not (np.isfinite(body).all() and np.isfinite(head).all() and (body[:, 2:] > 0).all()):
             raise FrameError(f"a frame of the window around {frame.id} has no head or body box from its keypoints")
