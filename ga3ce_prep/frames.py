@@ -50,6 +50,60 @@ class FrameRef:
     keypoints_2d: np.ndarray | None = None  # (25, 3) OpenPose BODY_25 u, v, confidence (GAFA)
 
 
+@dataclass(frozen=True, eq=False)
+class Window:
+    """The frames around one frame of its sequence, as a windowed backend receives them
+    (`Backend.window`, docs/pipeline.md).
+
+    frames: (size,) the adapter's frames of the same `sequence` at raw frame numbers index - size//2
+    ... index + size//2 (the frame itself in the middle); None where the adapter has no frame with
+    that number (a gap in the numbering, or beyond either end of the sequence).
+    previous: the sequence's frame that comes before raw number index - size//2 in frame-number
+    order, cyclically: the sequence's last frame when none comes before (what `np.roll(x, 1)`
+    pairs with the window's first frame over the array of the sequence's frames, as GAFA's body
+    velocity does).
+    """
+
+    frames: tuple[FrameRef | None, ...]
+    previous: FrameRef
+
+    @property
+    def complete(self) -> bool:
+        """Every raw frame number of the window is present."""
+        return all(f is not None for f in self.frames)
+
+
+def frame_windows(frames: list[FrameRef], size: int) -> list[Window]:
+    """The `size`-frame window (odd) centred on each frame, in the order of `frames`: neighbours by
+    consecutive raw frame numbers (`FrameRef.index`) within each `sequence`, looked up among
+    `frames` only. A frame with no sequence ("") is a sequence of its own. ValueError for an even
+    size or two frames of one sequence with the same number (an adapter bug)."""
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"a window has an odd number of frames, not {size}")
+    h = size // 2
+    members: dict[str | int, list[int]] = {}
+    for i, f in enumerate(frames):
+        members.setdefault(f.sequence or i, []).append(i)
+    out: list[Window | None] = [None] * len(frames)
+    offsets = np.arange(-h, h + 1)
+    for seq, pos in members.items():
+        pos = np.asarray(pos)
+        number = np.array([frames[i].index for i in pos], np.int64)
+        order = np.argsort(number, kind="stable")
+        pos, number = pos[order], number[order]
+        if np.any(np.diff(number) == 0):
+            dup = int(number[np.flatnonzero(np.diff(number) == 0)[0]])
+            raise ValueError(f"sequence {seq!r}: two frames with raw frame number {dup}")
+        want = number[:, None] + offsets                                  # (n, size) raw numbers
+        at = np.minimum(np.searchsorted(number, want), len(number) - 1)   # where each would sit
+        found = number[at] == want
+        prev = (np.searchsorted(number, number - h) - 1) % len(number)    # cyclic: -1 -> the last
+        for r, i in enumerate(pos):
+            out[i] = Window(tuple(frames[pos[a]] if ok else None for a, ok in zip(at[r], found[r])),
+                            frames[pos[prev[r]]])
+    return out  # type: ignore[return-value]
+
+
 @dataclass
 class DepthMap:
     """One frame's depth as the geometry stages use it.

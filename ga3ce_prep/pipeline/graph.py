@@ -7,6 +7,9 @@ calls named `<kind>-<shard index>` (`tasks.task_stages`, `tasks.task_upstream`):
            \\-> pose-i
            \\-> view-i      (after pose-i or geometry-i when its backend reads the pose)
 
+A task never waits for another shard's: a windowed backend (`Backend.window`) reads its
+neighbours' FrameRefs and pixels, not their stage outputs (their identities are in its cache key).
+
 Schedulers: the local threaded scheduler by default (`workers=None`); `workers=N` starts a
 `distributed.LocalCluster` of N single-threaded worker processes (parallelism without the GIL:
 the stages are partly pure Python); `scheduler=ADDRESS` uses a running dask cluster, whose

@@ -5,8 +5,10 @@ Order of a run (nothing is computed before every check has passed):
    (config.py), the run options and the output path;
 2. `_open_frames`: open the dataset (structural errors stop here) and list its frames (`limit`:
    the first N);
-3. `_make_shards`: under the output's lock (lock.py), cut the frames into shards and compute every
-   cache key;
+3. `_make_shards`: under the output's lock (lock.py), cut the frames into shards, give a windowed
+   backend's stage its frames' windows (`frames.frame_windows` over all the frames, so windows
+   reach into neighbouring shards) and compute every cache key (a windowed stage's also hashes the
+   identity of every neighbour it reads);
 4. `execute`: run the missing stage tasks on dask (graph.py, tasks.py), one progress bar per task kind;
 5. `finalize`: write the store from the cache (finalize.py); `_summarize` returns a RunSummary.
 
@@ -25,7 +27,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
-from ..frames import FrameRef
+from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION
 from .cache import Cache, file_identity, file_sha256, stable_hash
@@ -106,15 +108,18 @@ def stage_identity(conf: PipelineConfig, stage: str) -> dict[str, Any]:
 
 
 def shard_keys(conf: PipelineConfig, frames: list[FrameRef], data_root: Path,
-               idents: dict[str, dict[str, Any]]) -> dict[str, str]:
-    """The cache key of every stage for one shard of frames."""
+               idents: dict[str, dict[str, Any]], windows: dict[str, str] | None = None) -> dict[str, str]:
+    """The cache key of every stage for one shard of frames. windows: windowed stage -> the hash
+    of the shard's windows (`_window_hashes`), which its key also covers."""
+    windows = windows or {}
     keys: dict[str, str] = {}
     shard_id = stable_hash([_frame_identity(f) for f in frames])
     for stage in dependency_order(conf.upstream):
         up = [keys[u] for u in conf.upstream[stage]]
+        window = {"window": windows[stage]} if stage in windows else {}
         keys[stage] = stable_hash({"ident": idents[stage], "upstream": up,
                                    "frames": shard_id if stage == "input" else None,
-                                   "data_root": str(data_root) if stage == "input" else None})
+                                   "data_root": str(data_root) if stage == "input" else None, **window})
     return keys
 
 
@@ -190,13 +195,29 @@ def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> li
 
 
 def _make_shards(conf: PipelineConfig, frames: list[FrameRef], data_root: Path) -> list[Shard]:
-    """Consecutive shards of run.shard_size frames, each with every stage's cache key."""
+    """Consecutive shards of run.shard_size frames, each with every stage's cache key and, for a
+    windowed backend (`Backend.window`), its frames' windows (`frames.frame_windows` over all the
+    run's frames, so a window reaches into the neighbouring shards)."""
     idents = {s: stage_identity(conf, s) for s in STAGES}
+    sizes = {s: backend_class(s, conf.stages[s].backend).window for s in STAGES}
+    try:
+        windows = {s: frame_windows(frames, n) for s, n in sizes.items() if n}
+    except ValueError as e:
+        raise DatasetFormatError(f"{data_root}: {e} (adapter bug)") from None
+    frame_hash = {f: stable_hash(_frame_identity(f)) for f in frames} if windows else {}
     k = conf.shard_size
-    shards = [Shard(i, frames[j:j + k]) for i, j in enumerate(range(0, len(frames), k))]
+    shards = [Shard(i, frames[j:j + k], windows={s: w[j:j + k] for s, w in windows.items()})
+              for i, j in enumerate(range(0, len(frames), k))]
     for s in shards:
-        s.keys = shard_keys(conf, s.frames, data_root, idents)
+        s.keys = shard_keys(conf, s.frames, data_root, idents, _window_hashes(s.windows, frame_hash))
     return shards
+
+
+def _window_hashes(windows: dict[str, list[Window]], frame_hash: dict[FrameRef, str]) -> dict[str, str]:
+    """Per windowed stage, the hash of a shard's windows: each neighbour's identity (None where it
+    is missing) and the previous frame's, in order."""
+    return {s: stable_hash([[[frame_hash[f] if f is not None else None for f in w.frames], frame_hash[w.previous]]
+                            for w in ws]) for s, ws in windows.items()}
 
 
 def _run_key(conf: PipelineConfig, data_root: Path, shards: list[Shard]) -> str:

@@ -11,6 +11,8 @@ Tasks per shard (`task_stages`; their dependencies are the stages' effective ups
     view      -> its entry
 A stage reading another stage's output (`Backend.needs`, e.g. a view falling back to the pose)
 gets it from that stage's cache entry, or from the same task when both run there.
+A windowed backend (`Backend.window`) gets each frame's `frames.Window` from `Shard.windows`:
+FrameRefs of neighbouring frames, possibly of other shards, whose pixels it reads itself.
 
 Entry arrays (n = frames in the shard, ids for a sanity check; `new_entry` builds each layout):
     all:      ids (n,) str, ok (n,) bool, fail_idx (k,) int, fail_error (k,) str, fail_message (k,) str,
@@ -36,7 +38,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import Ga3ceError
-from ..frames import FrameRef
+from ..frames import FrameRef, Window
 from ..skeleton import N_JOINTS
 from ..stages import call_backend, dependency_order
 from ..stages.base import DepthMap, Sourced
@@ -50,11 +52,13 @@ _backends: dict[tuple, Any] = {}
 
 @dataclass
 class Shard:
-    """One shard's frames and the cache key of every stage for it."""
+    """One shard's frames, the cache key of every stage for it, and per windowed stage its frames'
+    windows (`frames.Window`: FrameRefs, possibly of other shards)."""
 
     index: int
     frames: list[FrameRef]
     keys: dict[str, str] = field(default_factory=dict)
+    windows: dict[str, list[Window]] = field(default_factory=dict)
 
     @property
     def ids(self) -> np.ndarray:
@@ -268,8 +272,11 @@ def _sources(env: TaskEnv, stage: str) -> tuple[str, ...]:
 
 
 def _call(env: TaskEnv, entry: StageEntry, i: int, frame: FrameRef, inputs: dict[str, Any]) -> Any:
-    """Frame i through its stage's backend (`stages.call_backend`), recorded in `entry`."""
-    return entry.attempt(i, call_backend, backend(env, entry.stage), frame, inputs)
+    """Frame i through its stage's backend (`stages.call_backend`, with its window when the backend
+    is windowed), recorded in `entry`."""
+    windows = entry.shard.windows.get(entry.stage)
+    return entry.attempt(i, call_backend, backend(env, entry.stage), frame, inputs,
+                         None if windows is None else windows[i])
 
 
 def input_task(env: TaskEnv, shard: Shard) -> list[StageReport]:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigError
+from ..frames import FrameRef, Window, frame_windows
 from .base import Backend
 
 STAGES: tuple[str, ...] = ("input", "depth", "objects", "head", "pose", "view")
@@ -65,7 +66,7 @@ BACKENDS: dict[str, str | Planned] = {
     "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
     "view/gfie": "ga3ce_prep.stages.view:GFIEView",
     "view/onnx": "ga3ce_prep.stages.view:OnnxView",
-    "view/gafa": Planned("GAFA's 7-frame head-body view network through ONNX Runtime"),
+    "view/gafa": "ga3ce_prep.stages.view:GafaView",
 }
 
 
@@ -99,14 +100,18 @@ def upstream_of(backends: dict[str, str]) -> dict[str, tuple[str, ...]]:
     return up
 
 
-def call_backend(backend: Backend, frame, inputs: dict[str, Any]) -> Any:
+def call_backend(backend: Backend, frame: FrameRef, inputs: dict[str, Any], window: Window | None = None) -> Any:
     """One frame through a backend's per-frame method: its stage's own upstream output (the depth
     map for objects and head) positionally, and what the backend `needs` by keyword, from `inputs`
-    (stage -> that stage's output for this frame)."""
+    (stage -> that stage's output for this frame); a windowed backend (`Backend.window`) also gets
+    `window`, the frame's `frames.Window` (without one, e.g. `predict`'s single frame: the frame alone)."""
     stage = backend.stage
     method = backend.check_frame if stage == "input" else getattr(backend, stage)
     args = [inputs[u] for u in UPSTREAM[stage] if u != "input"]
-    return method(frame, *args, **{n: inputs[n] for n in backend.needs})
+    kwargs = {n: inputs[n] for n in backend.needs}
+    if backend.window:
+        kwargs["window"] = window if window is not None else frame_windows([frame], backend.window)[0]
+    return method(frame, *args, **kwargs)
 
 
 def dependency_order(upstream: dict[str, tuple[str, ...]]) -> list[str]:

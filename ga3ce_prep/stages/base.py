@@ -11,6 +11,9 @@ method and its parameters as a typed dataclass:
     pose     PoseBackend.pose(frame)                          -> (30, 3) float32 smpl+head_30, metres
     view     ViewBackend.view(frame)                          -> (3,) float32 unit v, camera frame
 
+A backend may read more upstream stages (`needs`: `view(frame, pose=...)`) and a temporal window
+of the adapter's frames (`window = 7`: `view(frame, window=Window)`, see `Backend.window`).
+
 A per-frame problem raises FrameError (or any exception): the pipeline turns it into a failure
 record (stage, error class, message) and goes on. Units: metres; camera frame x right, y down,
 z forward.
@@ -92,6 +95,11 @@ class Backend:
     # The ways a frame's result can come about; when set, the per-frame method returns `Sourced`
     # and the store records the source of every frame (frames/<stage>_source).
     sources: ClassVar[tuple[str, ...]] = ()
+    # A temporal window (odd number of frames, 0: none): the per-frame method also gets
+    # `window=Window` (frames.Window), the frame's neighbours in its sequence by consecutive raw
+    # frame numbers, None where a number is missing; FrameRefs only, the backend reads their pixels
+    # itself. The pipeline finds them across shards and hashes them into the stage's cache key.
+    window: ClassVar[int] = 0
 
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")

@@ -6,9 +6,10 @@ optionally pulled toward the head direction, plus noise calibrated to a mean ang
 stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees),
 `facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
 estimators/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate),
-`gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/gfie_head.py) and
+`gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/gfie_head.py),
 `onnx` (any head-crop network exported to ONNX, GFIE's crop recipe by default:
-estimators/head_onnx.py).
+estimators/head_onnx.py) and `gafa` (GAFA's 7-frame head-and-body gaze network on your ONNX
+export: estimators/gafa_view.py; a windowed backend, `Backend.window`).
 """
 from __future__ import annotations
 
@@ -18,10 +19,12 @@ from typing import Literal
 
 import numpy as np
 
+from ..datasets.gafa import WINDOW
 from ..errors import ConfigError, FrameError
 from ..estimators.facemesh import FaceMeshOptions
 from ..estimators.head_onnx import HeadOnnxOptions
-from ..frames import FrameRef, load_rgb
+from ..estimators.onnx_runtime import RuntimeParams
+from ..frames import FrameRef, Window, load_rgb
 from ..geometry import normalize
 from ..params import param
 from ..skeleton import head_direction_from_pose
@@ -178,3 +181,53 @@ class OnnxView(ProcessEstimator, ViewBackend):
 
     def view(self, frame: FrameRef) -> np.ndarray:
         return self.estimator().estimate(load_rgb(frame.image_path), frame.head_box)
+
+
+class GafaView(ProcessEstimator, ViewBackend):
+    """v = the gaze that GAFA's GazeNet gives the centre frame of the 7-frame window centred on the
+    frame (estimators/gafa_view.py builds its inputs as GAFA's preprocessing and loader do).
+
+    GAFA's contiguity rule (`dataloader/gafa.py`): a window is 7 consecutive raw frame numbers of
+    the camera sequence, all present. A frame within 3 numbers of a gap or of either end of its
+    sequence has no such window and fails with FrameError (the frame is dropped). Needs the GAFA
+    adapter's BODY_25 keypoints (`FrameRef.keypoints_2d`)."""
+
+    name = "gafa"
+    window = WINDOW
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(RuntimeParams):
+        model: Path = param(file="model", hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models.md)")  # ONNX of GAFA's GazeNet (7 frames): image, head_mask, body_dv -> gaze
+
+    def check(self) -> None:
+        from ..estimators.onnx_runtime import resolve_providers
+
+        resolve_providers(self.p.providers)
+
+    def build_estimator(self):
+        from ..estimators.gafa_view import GafaViewEstimator
+
+        return GafaViewEstimator(self.p.model, self.p)
+
+    def view(self, frame: FrameRef, window: Window) -> np.ndarray:
+        from ..estimators.gafa_view import body_velocity, head_masks, normalize_crops, preprocessed_boxes
+
+        if not window.complete:
+            missing = [frame.index + k - WINDOW // 2 for k, f in enumerate(window.frames) if f is None]
+            raise FrameError(f"no {WINDOW}-frame window around frame {frame.index} of {frame.sequence or frame.id}: "
+                             f"raw frame(s) {missing} missing (GAFA uses only runs of {WINDOW} consecutive frames)")
+        seq = [window.previous, *window.frames]
+        if any(f.keypoints_2d is None for f in seq):
+            raise FrameError(f"view/gafa needs OpenPose BODY_25 keypoints (the gafa adapter); a frame of "
+                             f"the window around {frame.id} has none")
+        head, body = preprocessed_boxes(np.stack([f.keypoints_2d for f in seq]))
+        if not (np.isfinite(body).all() and np.isfinite(head).all() and (body[:, 2:] > 0).all()):
+            raise FrameError(f"a frame of the window around {frame.id} has no head or body box from its keypoints")
+        est = self.estimator()
+        crops = np.stack([est.crop(f.image_path, b) for f, b in zip(window.frames, body[1:])])
+        gaze = est.predict(normalize_crops(crops), head_masks(head[1:], body[1:]), body_velocity(body))
+        v = np.asarray(gaze[WINDOW // 2], np.float64)
+        n = float(np.linalg.norm(v))
+        if not np.isfinite(n) or n < 1e-6:
+            raise FrameError(f"GAFA's network gave {v.tolist()} for frame {frame.id}, not a direction")
+        return (v / n).astype(np.float32)

@@ -1,4 +1,5 @@
-"""Small ONNX models with MobileSAM's official interfaces, for the tests and benchmarks.
+"""Small ONNX models with the official interfaces of MobileSAM and GAFA's GazeNet, for the tests
+and benchmarks.
 
 - `pooling_encoder(form)`: an "encoder" whose embedding is the 16x16 block mean of the normalised,
   padded input (channel c = RGB channel c % 3), in the normalised `[1, 3, 1024, 1024]` form or
@@ -10,6 +11,9 @@
   `single_mask=True`: one mask per prompt, as SAM's `--return-single-mask` export of one click
   (the best of tokens 1..3: token 1).
 - `renamed(model, names)`: a copy with inputs/outputs renamed (exports that name tensors their own way).
+- `centroid_gazenet()`: GAFA's view interface (estimators/gafa_view.py) whose gaze for each frame is
+  a known function of its inputs (`centroid_gaze`, the same in numpy): the head mask's centroid,
+  the window's summed body velocity and the frame's mean image value.
 """
 from __future__ import annotations
 
@@ -133,3 +137,38 @@ def drawn_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
     cv2.line(img, (0, 0), (w - 1, h - 1), (255, 255, 255), 3)
     img += rng.normal(0.0, 4.0, img.shape)
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def centroid_gaze(image: np.ndarray, head_mask: np.ndarray, body_dv: np.ndarray) -> np.ndarray:
+    """(B, 7, 3) float64, what `centroid_gazenet` writes (not normalised) for image (B, 7, 3, H, W),
+    head_mask (B, 7, 1, H, W), body_dv (B, 7, 2): per frame (cx - 95.5 + 100 D_x,
+    cy - 127.5 + 100 D_y, 40 + 10 mean(image)), with (cx, cy) the head mask's centroid in crop
+    pixels and D the body velocity summed over the window (the last frame's box centre minus the
+    one before the window's)."""
+    m = np.asarray(head_mask, np.float64)[:, :, 0]
+    h, w = m.shape[-2:]
+    area = m.sum((2, 3)) + 1e-3
+    cx, cy = (m * np.arange(w)).sum((2, 3)) / area, (m * np.arange(h)[:, None]).sum((2, 3)) / area
+    d = np.asarray(body_dv, np.float64).sum(1)[:, None]
+    z = 40 + 10 * np.asarray(image, np.float64).mean((2, 3, 4))
+    return np.stack([cx - 95.5 + 100 * d[..., 0], cy - 127.5 + 100 * d[..., 1], z], axis=-1)
+
+
+def centroid_gazenet(window: int = 7, h: int = 256, w: int = 192) -> onnx.ModelProto:
+    """A ModelProto with GAFA's view interface: image (B, window, 3, h, w), head_mask
+    (B, window, 1, h, w), body_dv (B, window, 2) -> gaze (B, window, 3) = `centroid_gaze`."""
+    g = GraphBuilder("centroid_gazenet")
+    image = g.input("image", ["batch", window, 3, h, w])
+    mask = g.input("head_mask", ["batch", window, 1, h, w])
+    dv = g.input("body_dv", ["batch", window, 2])
+    area = g.add(g.reduce_sum(mask, [2, 3, 4], keepdims=False), g.const(1e-3))             # (B, T)
+    cx = g.div(g.reduce_sum(g.mul(mask, g.const(np.arange(w).reshape(1, 1, 1, 1, w))), [2, 3, 4], False), area)
+    cy = g.div(g.reduce_sum(g.mul(mask, g.const(np.arange(h).reshape(1, 1, 1, h, 1))), [2, 3, 4], False), area)
+    d = g.mul(g.reduce_sum(dv, [1], keepdims=False), g.const(100.0))                        # (B, 2)
+    dx, dy = (g.op("Gather", d, g.const([k], dtype=np.int64), axis=1) for k in (0, 1))     # (B, 1)
+    z = g.add(g.mul(g.op("ReduceMean", image, axes=[2, 3, 4], keepdims=0), g.const(10.0)), g.const(40.0))
+    xyz = [g.add(g.sub(cx, g.const(95.5)), dx), g.add(g.sub(cy, g.const(127.5)), dy), z]
+    g.output(g.concat([g.op("Unsqueeze", c, g.const([2], dtype=np.int64)) for c in xyz], axis=2), "gaze")
+    m = g.model()
+    m.graph.output[0].CopyFrom(onnx.helper.make_tensor_value_info("gaze", TensorProto.FLOAT, ["batch", window, 3]))
+    return m
