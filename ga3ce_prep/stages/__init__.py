@@ -51,7 +51,7 @@ BACKENDS: dict[str, str | Planned] = {
     "depth/sensor": "ga3ce_prep.stages.depth:SensorDepth",
     "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
     "depth/fastdepth": "ga3ce_prep.stages.depth:FastDepth",
-    "depth/zoedepth": Planned("monocular metric depth through ONNX Runtime (ZoeDepth)"),
+    "depth/onnx": "ga3ce_prep.stages.depth:OnnxDepth",
     "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
     "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
     "objects/mobilesam": "ga3ce_prep.stages.objects_mobilesam:MobileSAMObjects",
