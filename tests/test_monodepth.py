@@ -1,4 +1,5 @@
-"""depth/onnx (the generic metric depth runner and its presets), on tiny ONNX models whose output is a known function of the input: depth = a * (channel 0 of the network input) + b."""
+"""depth/onnx (the generic metric depth runner and its presets) and depth/precomputed, on tiny ONNX
+models whose output is a known function of the input: depth = a * (channel 0 of the network input) + b."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -16,6 +17,7 @@ from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store
+from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing.photos import K_from_hfov, photo, photo_frame
 
 
@@ -216,6 +218,67 @@ def test_onnx_depth_end_to_end(tmp_path, synth_world):
     assert len(st.objects["xyz"]) > 12
     np.testing.assert_allclose(st.objects["xyz"][:, 2], 3.0, rtol=1e-6)
     assert st.attrs["stages"]["depth"]["options"]["units"] == "m"
+
+
+# ---------------------------------------------------------------------------------------------------
+# depth/precomputed
+
+
+def _truth_depths(world: Path) -> tuple[list[str], np.ndarray]:
+    truth = TruthReader(world / "truth.h5")
+    ids = list(truth.frame_ids)
+    return ids, np.stack([truth.get(i).depth for i in ids])
+
+
+def test_precomputed_depth_npz_equals_the_oracle_and_a_missing_frame_fails_alone(tmp_path, synth_world):
+    ids, depth = _truth_depths(synth_world)
+    np.savez(tmp_path / "d.npz", frame_id=np.array(ids[1:]), depth=depth[1:])
+    over = {"stages.depth": {"backend": "precomputed", "params": {"file": str(tmp_path / "d.npz")}}}
+    s = run_pipeline("synthetic-oracle", synth_world, tmp_path / "p.zarr", progress=False, overrides=over)
+    run_pipeline("synthetic-oracle", synth_world, tmp_path / "o.zarr", progress=False, overrides=[
+        "stages.depth.backend=oracle", "stages.depth.params={truth: '{data}/truth.h5'}"])
+    p, o = open_store(tmp_path / "p.zarr"), open_store(tmp_path / "o.zarr")
+    assert s.counts.frames_kept == 11
+    assert s.counts.dropped_by_stage == {"depth": 1}
+    assert f"frame {ids[0]} is not in" in p.failures["message"][0]
+    assert ids[0] not in p.frames["id"].tolist()
+    for i, fid in enumerate(p.frames["id"]):
+        j = o.frames["id"].tolist().index(fid)
+        np.testing.assert_allclose(p.objects_of(i), o.objects_of(j), atol=1e-6)
+        np.testing.assert_allclose(p.frames["head_pos"][i], o.frames["head_pos"][j], atol=1e-6)
+
+
+def test_precomputed_depth_hdf5_millimetres_and_units_checks(tmp_path, synth_world):
+    import h5py
+
+    ids, depth = _truth_depths(synth_world)
+    mm = np.round(depth * 1000).astype(np.uint16)
+    mm[0] *= 0                                                             # frames with no depth at all: the
+    mm[3] *= 0                                                             # check reads the next one
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        f["frame_id"] = np.array(ids, dtype=h5py.string_dtype())
+        f.create_dataset("depth", data=mm, chunks=(1, *mm.shape[1:]))
+    ctx = BackendContext(synth_world)
+    b = backend_class("depth", "precomputed")({"file": str(tmp_path / "d.h5"), "units": "mm"}, ctx)
+    b.check()
+    frames = {f.id: f for f in __import__("ga3ce_prep.datasets", fromlist=["open_dataset"]).open_dataset(
+        "gfie", synth_world).frames()}
+    dm = b.depth(frames[ids[1]])
+    np.testing.assert_allclose(dm.depth, np.round(depth[1] * 1000) / 1000, atol=1e-6)
+    np.testing.assert_array_equal(dm.valid, depth[1] > 0)
+    with pytest.raises(FrameError, match=rf"depth of frame {ids[3]} in .*d.h5: no positive depth"):
+        b.depth(frames[ids[3]])
+    wrong = backend_class("depth", "precomputed")({"file": str(tmp_path / "d.h5")}, ctx)  # units m
+    with pytest.raises(ConfigError, match=r"d.h5: median depth \d+ m \(read as units m\) is outside the plausible "
+                                          r"0.1-100 m; read as .*mm \([\d.]+ m\).*: set stages.depth.params.units \(now m\)"):
+        wrong.check()
+    small = frames[ids[1]]
+    small.image_size = (80, 60)
+    with pytest.raises(FrameError, match=r"160x120 but the image is 80x60"):
+        b.depth(small)
+    np.savez(tmp_path / "bad.npz", frame_id=np.array(ids), depth=depth[:, 0])
+    with pytest.raises(ConfigError, match=r"'depth' has shape \(12, 160\) .*expected \(12, H, W\)"):
+        backend_class("depth", "precomputed")({"file": str(tmp_path / "bad.npz")}, ctx).check()
 
 
 def test_export_script_writes_a_file_the_runner_reads(tmp_path):

@@ -52,6 +52,7 @@ BACKENDS: dict[str, str | Planned] = {
     "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
     "depth/fastdepth": "ga3ce_prep.stages.depth:FastDepth",
     "depth/onnx": "ga3ce_prep.stages.depth:OnnxDepth",
+    "depth/precomputed": "ga3ce_prep.stages.depth:PrecomputedDepth",
     "objects/geometric": "ga3ce_prep.stages.objects:GeometricObjects",
     "objects/oracle": "ga3ce_prep.stages.objects:OracleObjects",
     "objects/mobilesam": "ga3ce_prep.stages.objects_mobilesam:MobileSAMObjects",

@@ -1,12 +1,13 @@
 """The depth stage: sensor depth with classical hole completion
 (`estimators/depth_completion.py`, IP-Basic family), the synthetic world's exact depth, metric
 monocular depth from an ONNX file (`onnx`: the user's ZoeDepth, Depth-Anything-V2-metric, ...
-export; `fastdepth`: the registry's FastDepth; one runner, estimators/monodepth.py).
+export; `fastdepth`: the registry's FastDepth; one runner, estimators/monodepth.py), or depth maps
+computed elsewhere (`precomputed`).
 
 The raw validity mask (measured depth within [min_depth, max_depth]) is kept beside the completed
 map: the head position uses measured pixels only, the object medians by default
-(`objects.params.median_pixels`). For monocular depth "valid" means "predicted"
-(nothing is measured): the pixels the network covered.
+(`objects.params.median_pixels`). For monocular and precomputed depth "valid" means "predicted"
+(nothing is measured): the pixels the network covered, or the file gives.
 """
 from __future__ import annotations
 
@@ -16,13 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FrameError
+from ..errors import ConfigError, FrameError
 from ..estimators.depth_completion import CompletionParams, complete_depth
-from ..estimators.monodepth import PRESETS, MonoDepthOptions, Preset, resolve_options
+from ..estimators.monodepth import (PRESETS, MonoDepthOptions, Preset, Units, check_plausible, resolve_options,
+                                    to_metres)
 from ..estimators.onnx_runtime import RuntimeParams
 from ..frames import FrameRef, load_depth, load_rgb
 from ..params import param
 from .base import DepthBackend, DepthMap, ProcessEstimator
+from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
 
 EXPORT_HINT = ("export it with scripts/export_monodepth.py from your ZoeDepth or Depth-Anything-V2 install "
@@ -151,3 +154,47 @@ class FastDepth(MonoDepth):
 
     def options(self) -> MonoDepthOptions:
         return PRESETS["fastdepth"]
+
+
+class PrecomputedDepth(DepthBackend):
+    """Depth maps computed elsewhere, keyed by frame id (stages/precomputed.py layout: frame_id (N,)
+    str, depth (N, H, W) in `units`, at each frame's image resolution). `valid` = the pixels with a
+    positive finite depth. A frame missing from the file fails alone; a frame whose median depth is
+    implausible is refused (the first frame's before any work)."""
+
+    name = "precomputed"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params:
+        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, depth)")  # HDF5/npz: frame_id (N,) str, depth (N, H, W) at the image resolution
+        units: Units = "m"  # the stored depth's unit: m, cm, mm, or inverse_m (1 / metres); 0, negative and non-finite values are unknown
+        plausible_depth: tuple[float, ...] = param((0.1, 100.0), minItems=2, maxItems=2, items={"exclusiveMinimum": 0})  # metres [min, max]: a frame whose median depth is outside is refused (wrong units?)
+
+    def _table(self):
+        return precomputed_table(self.p.file, "depth", ("H", "W"), "stages.depth.params.file")
+
+    def _metres(self, frame_id: str, raw: np.ndarray) -> np.ndarray:
+        """The frame's stored depth in metres (0 = unknown); FrameError when implausible."""
+        d = to_metres(np.where(np.isfinite(raw), raw, 0), self.p.units)
+        check_plausible(d, raw, self.p.units, self.p.plausible_depth, f"depth of frame {frame_id} in {self.p.file}",
+                        f"stages.depth.params.units (now {self.p.units})")
+        d[(d < 0) | (d > self.p.plausible_depth[1])] = 0
+        return d
+
+    def check(self) -> None:
+        """Before any work: the file's layout, and the units on the first frame with a positive depth
+        (among the first ten)."""
+        t = self._table()
+        for fid in t.ids[:10]:
+            raw = t.get(fid)
+            if np.any(raw > 0):
+                try:
+                    self._metres(fid, raw)
+                except FrameError as e:
+                    raise ConfigError(str(e)) from None
+                return
+
+    def depth(self, frame: FrameRef) -> DepthMap:
+        d = self._metres(frame.id, self._table().get(frame.id))
+        check_resolution(frame, d.shape, f"depth of frame {frame.id} in {self.p.file}")
+        return DepthMap(d, d > 0)
