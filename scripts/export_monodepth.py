@@ -23,6 +23,7 @@ difference) and runs it through the `depth/onnx` runner on a grey image.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -32,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from ga3ce_prep.estimators.monodepth import PRESETS, MonoDepthEstimator, network_size  # noqa: E402
+from ga3ce_prep.estimators.monodepth import PRESETS, MonoDepthEstimator, MonoDepthOptions, network_size  # noqa: E402
 
 # Depth-Anything-V2's model sizes, as its metric_depth README lists them (encoder -> constructor arguments)
 DA2_CONFIGS = {
@@ -40,8 +41,10 @@ DA2_CONFIGS = {
     "vitb": {"encoder": "vitb", "features": 128, "out_channels": [96, 192, 384, 768]},
     "vitl": {"encoder": "vitl", "features": 256, "out_channels": [256, 512, 1024, 1024]},
 }
-# ZoeDepth's variants: get_config(model name, "infer", config_version=...) as its hubconf.py builds them
+# ZoeDepth's variants: get_config(model name, "infer", config_version=...) as its hubconf.py builds them;
+# ZoeD_K's config has img_size [384, 768] (N and NK: the preset's [384, 512])
 ZOE_VARIANTS = {"N": ("zoedepth", None), "K": ("zoedepth", "kitti"), "NK": ("zoedepth_nk", None)}
+ZOE_K_SIZE = (384, 768)
 
 
 def metric_module(forward):
@@ -97,18 +100,18 @@ def export(module, size: tuple[int, int], out: Path, opset: int = 17) -> Path:
     return out
 
 
-def verify(module, out: Path, preset: str, image_size: tuple[int, int]) -> dict:
-    """The ONNX file against the module on a random input, and through the runner on a grey image."""
+def verify(module, out: Path, opt: MonoDepthOptions, image_size: tuple[int, int]) -> dict:
+    """The ONNX file against the module on a random input, and through the runner (options `opt`)
+    on a grey image."""
     import onnxruntime as ort
     import torch
 
-    opt = PRESETS[preset]
     H, W = network_size(*image_size, opt)
     x = np.random.default_rng(0).random((1, 3, H, W), np.float32)
     with torch.no_grad():
         ref = module(torch.from_numpy(x)).numpy()
     got = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).run(None, {"image": x})[0]
-    est = MonoDepthEstimator(out, opt, what=f"{preset} export")
+    est = MonoDepthEstimator(out, opt, what="export")
     w, h = image_size
     K = np.array([[w, 0, w / 2], [0, w, h / 2], [0, 0, 1]], np.float64)
     grey = est.predict(np.full((h, w, 3), 128, np.uint8), K)
@@ -132,15 +135,19 @@ def main(argv: list[str] | None = None) -> None:
         p.add_argument("--opset", type=int, default=17)
     a = ap.parse_args(argv)
     image_size = tuple(int(v) for v in a.image_size.lower().split("x"))
+    extra = ""
     if a.network == "zoedepth":
         preset, module = "zoedepth", load_zoedepth(a.variant, a.checkpoint)
+        opt = PRESETS[preset]
+        if a.variant == "K":
+            opt, extra = dataclasses.replace(opt, size=ZOE_K_SIZE), f", size: {list(ZOE_K_SIZE)}"
     else:
         preset = "depth-anything-v2-metric-indoor" if a.max_depth <= 20 else "depth-anything-v2-metric-outdoor"
-        module = load_depth_anything_v2_metric(a.repo, a.encoder, a.max_depth, a.checkpoint)
-    size = network_size(*image_size, PRESETS[preset])
+        module, opt = load_depth_anything_v2_metric(a.repo, a.encoder, a.max_depth, a.checkpoint), PRESETS[preset]
+    size = network_size(*image_size, opt)
     export(module, size, a.out, a.opset)
-    print(f"wrote {a.out} (input 1x3x{size[0]}x{size[1]}); check: {verify(module, a.out, preset, image_size)}")
-    print(f"pipeline: stages.depth: {{backend: onnx, params: {{model: {a.out}, preset: {preset}}}}}")
+    print(f"wrote {a.out} (input 1x3x{size[0]}x{size[1]}); check: {verify(module, a.out, opt, image_size)}")
+    print(f"pipeline: stages.depth: {{backend: onnx, params: {{model: {a.out}, preset: {preset}{extra}}}}}")
 
 
 if __name__ == "__main__":

@@ -298,7 +298,7 @@ def test_export_script_writes_a_file_the_runner_reads(tmp_path):
     module = script.metric_module(lambda m, x: m(x)["metric_depth"])(Tiny())
     size = network_size(64, 48, PRESETS["zoedepth"])
     out = script.export(module, size, tmp_path / "zoe.onnx")
-    check = script.verify(module, out, "zoedepth", (64, 48))
+    check = script.verify(module, out, PRESETS["zoedepth"], (64, 48))
     assert check["input"] == [384, 512]
     assert check["max_abs_diff_m"] < 1e-6
     assert check["grey_median_m"] == pytest.approx(1.5 + 128 / 255, abs=1e-5)
