@@ -2,6 +2,7 @@
 models whose output is a known function of the input: depth = a * (channel 0 of the network input) + b."""
 from __future__ import annotations
 
+import typing
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from PIL import Image
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
 from ga3ce_prep.estimators.monodepth import (IMAGENET_MEAN, IMAGENET_STD, PRESETS, MonoDepthEstimator, MonoDepthOptions,
-                                             network_size, resolve_options)
+                                             Preset, network_size, resolve_options)
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.stages import backend_class
@@ -74,6 +75,7 @@ def test_presets_sizes_follow_the_official_resize_rules():
     assert network_size(1920, 1080, PRESETS["fastdepth"]) == (224, 224)
     assert (da.mean, da.std, da.interpolation) == (IMAGENET_MEAN, IMAGENET_STD, "cubic")
     assert PRESETS["depth-anything-v2-metric-outdoor"] == da
+    assert set(typing.get_args(Preset)) == set(PRESETS)                   # the schema's names are the presets
     assert (zoe.input_range, zoe.mean, zoe.std, zoe.units) == ("0-1", (0, 0, 0), (1, 1, 1), "m")
     over = resolve_options("zoedepth", MonoDepthOptions(units="mm", size=(10, 20)))
     assert (over.units, over.size, over.multiple, over.resize) == ("mm", (10, 20), 32, "keep_aspect")
