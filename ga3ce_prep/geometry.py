@@ -133,6 +133,15 @@ def _grouped_valid_pixels(masks: np.ndarray, ok: np.ndarray, min_points: int):
     raise ValueError(f"masks must be (M, H, W) bool or (H, W) int labels, got shape {masks.shape}")
 
 
+def mask_pixel_counts(masks: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Pixels of each mask where `ok` (H, W) bool holds: (M,) int64 for (M, H, W) bool masks, or
+    (n_labels,) for an (H, W) int label image (negative = no mask)."""
+    if masks.ndim == 3:
+        return np.count_nonzero(masks.reshape(len(masks), -1) & ok.reshape(1, -1), axis=1)
+    sel = masks[ok & (masks >= 0)]
+    return np.bincount(sel, minlength=int(masks.max(initial=-1)) + 1)
+
+
 def _median_sorted_groups(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Median of each contiguous group values[s:s+c] (numpy's convention: mean of the two middle
     values for even c). One O(c) selection per group; no per-pixel Python work."""

@@ -70,10 +70,10 @@ def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
 
 
 def test_planned_backend_is_not_available_yet(tmp_path):
-    model = tmp_path / "zoedepth.onnx"
+    model = tmp_path / "pose.onnx"
     model.write_bytes(b"x")
-    with pytest.raises(ConfigError, match=r"stages.depth.backend: 'zoedepth' .* is not available yet.*oracle, sensor"):
-        load_pipeline(_base(), tmp_path, overrides={"stages.depth": {"backend": "zoedepth", "params": {
+    with pytest.raises(ConfigError, match=r"stages.pose.backend: 'onnx' .* is not available yet.*oracle, precomputed"):
+        load_pipeline(_base(), tmp_path, overrides={"stages.pose": {"backend": "onnx", "params": {
             "model": str(model)}}})
 
 

@@ -90,3 +90,43 @@ def test_geometric_segmenter_finds_true_objects(synth_world, tmp_path):
     assert tot > 30
     assert hit / tot > 0.3, (hit, tot)
     assert g.attrs["stages"]["objects"]["backend"] == "geometric"
+
+
+def test_median_pixels_measured_or_completed_on_a_hand_made_mask(tmp_path):
+    """One 21-pixel mask: 10 measured pixels at 2 m, 11 filled-in pixels at 1 m."""
+    from dataclasses import dataclass
+
+    from ga3ce_prep.frames import DepthMap, FrameRef
+    from ga3ce_prep.stages.base import BackendContext
+    from ga3ce_prep.stages.objects import MaskObjects, MaskParams
+
+    class Fixed(MaskObjects):
+        name = "fixed"
+
+        @dataclass(frozen=True, kw_only=True)
+        class Params(MaskParams):
+            pass
+
+        def masks(self, frame, depth):
+            labels = np.full((8, 8), -1, np.int32)
+            labels.flat[10:31] = 0
+            return labels, None
+
+    depth = np.full((8, 8), 5.0, np.float32)
+    valid = np.zeros((8, 8), bool)
+    depth.flat[10:20], valid.flat[10:20] = 2.0, True
+    depth.flat[20:31] = 1.0
+    K = np.array([[4.0, 0, 4.0], [0, 4.0, 4.0], [0, 0, 1]])
+    frame = FrameRef("f", "test", "s", tmp_path / "x.png", K, (8, 8), np.zeros(4, np.float32))
+    ctx = BackendContext(tmp_path)
+    m = Fixed({}, ctx).objects(frame, DepthMap(depth, valid))
+    c = Fixed({"median_pixels": "completed"}, ctx).objects(frame, DepthMap(depth, valid))
+    assert m.xyz[0, 2] == 2.0 and c.xyz[0, 2] == 1.0
+    # the measured pixels: columns 2..7 of row 1 and 0..3 of row 2 -> median u 3 at 2 m: (3 - 4) * 2 / 4
+    assert m.xyz[0, 0] == pytest.approx(-0.5)
+    np.testing.assert_allclose(m.score, 10 / 21)   # the measured fraction either way
+    np.testing.assert_allclose(c.score, 10 / 21)
+    assert (m.area[0], c.area[0]) == (21, 21)
+    m11 = Fixed({"min_points": 11}, ctx).objects(frame, DepthMap(depth, valid))
+    c11 = Fixed({"min_points": 11, "median_pixels": "completed"}, ctx).objects(frame, DepthMap(depth, valid))
+    assert (len(m11.xyz), m11.n_dropped, len(c11.xyz), c11.n_dropped) == (0, 1, 1, 0)

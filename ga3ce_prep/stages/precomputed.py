@@ -1,17 +1,20 @@
-"""Per-frame arrays computed elsewhere (a pose or view estimator run offline), keyed by frame id.
+"""Per-frame arrays computed elsewhere (a pose, view or depth estimator run offline), keyed by frame id.
 
 Layout (HDF5 or .npz; documented in docs/pipeline.md):
 
     frame_id   (N,) str          the dataset's frame ids (`ga3ce-prep info` lists them)
     <values>   (N, ...) float    "pose" (N, 30, 3) metres, smpl+head_30, camera frame;
-                                 "view" (N, 3) unit vectors, camera frame
+                                 "view" (N, 3) unit vectors, camera frame;
+                                 "depth" (N, H, W) depth maps at the image resolution
 
-A frame missing from the file raises FrameError for that frame only.
+An .npz is read whole (once per process); HDF5 rows are read when asked for, so a file of depth
+maps larger than memory works. A frame missing from the file raises FrameError for that frame only.
 """
 from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,43 +25,53 @@ _lock = threading.Lock()
 
 
 class PrecomputedTable:
-    """An in-memory id -> row table of one array of a precomputed file."""
+    """An id -> row table of one array of a precomputed file. `trailing`: the row shape, an int per
+    fixed size, a name (e.g. "H") for a size the file chooses."""
 
-    def __init__(self, path: Path, name: str, trailing: tuple[int, ...], where: str):
+    def __init__(self, path: Path, name: str, trailing: tuple[int | str, ...], where: str):
         self.path, self.name = Path(path), name
+        layout = f"{name} (N, {', '.join(map(str, trailing))})"
         if not self.path.is_file():
             raise ConfigError(f"{where}: precomputed file {self.path} not found; write it with the layout in "
-                              f"docs/pipeline.md (frame_id (N,) str, {name} (N, {', '.join(map(str, trailing))}))")
+                              f"docs/pipeline.md (frame_id (N,) str, {layout})")
         try:
             ids, values = self._read()
         except (OSError, ValueError, KeyError) as e:
             raise ConfigError(f"{where}: cannot read {self.path}: {e}. Expected datasets 'frame_id' (N,) str "
-                              f"and {name!r} (N, {', '.join(map(str, trailing))})") from None
-        if values.shape[1:] != trailing or len(values) != len(ids):
-            raise ConfigError(f"{where}: {self.path}: {name!r} has shape {values.shape} and frame_id {ids.shape}; "
+                              f"and {layout}") from None
+        shape = tuple(values.shape)
+        if (len(shape) != 1 + len(trailing) or len(values) != len(ids)
+                or any(isinstance(t, int) and t != n for t, n in zip(trailing, shape[1:]))):
+            raise ConfigError(f"{where}: {self.path}: {name!r} has shape {shape} and frame_id {ids.shape}; "
                               f"expected ({len(ids)}, {', '.join(map(str, trailing))})")
-        self.values = values.astype(np.float32)
-        self.row = {fid: i for i, fid in enumerate(ids.tolist())}
+        self.values = values  # np.ndarray (npz) or h5py.Dataset (rows read by `get`)
+        self.ids: list[str] = ids.tolist()
+        self.row = {fid: i for i, fid in enumerate(self.ids)}
 
-    def _read(self) -> tuple[np.ndarray, np.ndarray]:
+    def _read(self) -> tuple[np.ndarray, Any]:
         if self.path.suffix == ".npz":
             with np.load(self.path, allow_pickle=False) as z:
-                return np.asarray(z["frame_id"]).astype(str), np.asarray(z[self.name])
+                return np.asarray(z["frame_id"]).astype(str), np.asarray(z[self.name]).astype(np.float32)
         import h5py
 
-        with h5py.File(self.path, "r") as f:
+        f = h5py.File(self.path, "r")  # kept open for the table's life: rows are read on demand
+        try:
             ids = f["frame_id"]
             ids = ids.asstr()[...] if ids.dtype.kind in "OS" else ids[...]
-            return np.asarray(ids).astype(str), np.asarray(f[self.name][...])
+            return np.asarray(ids).astype(str), f[self.name]
+        except Exception:
+            f.close()
+            raise
 
     def get(self, frame_id: str) -> np.ndarray:
+        """The frame's row as float32; FrameError if the file does not hold the frame."""
         i = self.row.get(frame_id)
         if i is None:
             raise FrameError(f"frame {frame_id} is not in {self.path} ({self.name})")
-        return self.values[i]
+        return np.asarray(self.values[i], np.float32)
 
 
-def precomputed_table(path: Path, name: str, trailing: tuple[int, ...], where: str) -> PrecomputedTable:
+def precomputed_table(path: Path, name: str, trailing: tuple[int | str, ...], where: str) -> PrecomputedTable:
     """The table of `path`, loaded once per process (and again when the file changes)."""
     p = Path(path)
     key = (str(p), name, p.stat().st_mtime_ns if p.exists() else 0)
