@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-WEIGHTS = """where to get the weights (non-commercial licences; read them):
+WEIGHTS = """where to get the weights (read their licences: MeTRAbs's README allows non-commercial use only):
   MeTRAbs, PyTorch port (github.com/isarandi/metrabs, README "PyTorch"): the archive at
     https://bit.ly/metrabs_l_pt  ->  metrabs_eff2l_384px_800k_28ds_pytorch/ (config.yaml, ckpt.pt,
     joint_info.npz, skeleton_infos.pkl, joint_transform_matrix.npy); its code: pip install the

@@ -3,6 +3,9 @@ on tiny TorchScript and ONNX models whose outputs are known functions of their i
 homography crop, the way back to the camera frame, the input's dtype, range and gamma, the joints
 by name, the checks before any work, the depth refinement, and the backends through
 `run_pipeline` on the synthetic world. The real MeTRAbs / NLF weights cannot be fetched here."""
+import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -343,3 +346,42 @@ def test_pipeline_stores_what_the_model_says_in_metres_in_the_camera_frame(synth
             np.testing.assert_allclose(pose, want, atol=2e-6)
         prov = s.attrs["stages"]["pose"]
         assert prov["backend"] == kind and set(prov["models"]) == {str(model), str(out.joints)}
+
+
+def _export_script():
+    path = Path(__file__).resolve().parent.parent / "scripts" / "export_crop_pose.py"
+    spec = importlib.util.spec_from_file_location("export_crop_pose", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return path, module
+
+
+class FakeMetrabs(torch.nn.Module):
+    """MeTRAbs's crop model's call convention, forward((image NCHW, intrinsics)) -> [N, n, 3]:
+    joint i at (mean of channel i % 3, K'[0, 0], i)."""
+
+    def forward(self, inp):
+        image, intrinsics = inp
+        ch = image.mean(dim=(2, 3))                                   # [N, 3]
+        i = torch.arange(5, dtype=torch.float32)
+        return torch.stack([ch[:, [0, 1, 2, 0, 1]], intrinsics[:, :1, 0].expand(-1, 5), i.expand(image.shape[0], 5)], -1)
+
+
+def test_export_script_help_and_its_metrabs_wrapper(tmp_path):
+    """The script's --help says where the weights are; its MeTRAbs wrapper feeds NCHW, applies the
+    joint transform (n, N) and the skeleton's indices, and goes through save_crop_model. (The
+    authors' classes themselves are not importable here.)"""
+    path, script = _export_script()
+    out = subprocess.run([sys.executable, str(path), "metrabs", "--help"], capture_output=True, text=True, check=True)
+    assert "bit.ly/metrabs_l_pt" in out.stdout and "unverified" in out.stdout
+    transform = np.zeros((5, 4))
+    transform[[0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+    transform[4, 3] = 1.0                                             # joint 3' = joint 3 + joint 4
+    wrapped = script.MetrabsCrop(FakeMetrabs(), transform, np.array([3, 0, 2]))
+    image = torch.zeros(1, S, S, 3)
+    image[..., 0], image[..., 1], image[..., 2] = 0.25, 0.5, 0.75
+    K = torch.tensor([[[100.0, 0, 32], [0, 100, 32], [0, 0, 1]]])
+    got = wrapped(image, K)[0].numpy()
+    np.testing.assert_allclose(got, [[0.25 + 0.5, 200, 7], [0.25, 100, 0], [0.75, 100, 2]], atol=1e-6)
+    saved = save_crop_model(wrapped, S, ["c", "a", "b"], tmp_path / "fake")
+    assert max(saved.max_diff_mm.values()) < 1e-3 and read_joint_names(saved.joints) == ["c", "a", "b"]
