@@ -18,6 +18,7 @@ generations, so a name the list lacks is refused, naming it.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Protocol, Sequence
@@ -32,6 +33,8 @@ from ..skeleton import HEAD_JOINTS, JOINT_NAMES, N_JOINTS
 from .crops import LookAtCrop, look_at_crop, warp_homography
 from .placement import refine_with_depth
 
+# torch 2.13 deprecates TorchScript (NLF's release format and ours); silenced where we call it
+TORCHSCRIPT_DEPRECATED = dict(action="ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
 INPUT_DTYPES = {"float32": np.float32, "float16": np.float16, "uint8": np.uint8}
 ORT_TYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "uint8": "tensor(uint8)"}
 
@@ -229,7 +232,9 @@ class TorchScriptCropModel:
             raise ConfigError(f"device {device!r}: this torch build or machine has no CUDA; use device: cpu")
         torch.set_num_threads(int(threads))
         try:
-            self.module = torch.jit.load(str(path), map_location=device).eval()
+            with warnings.catch_warnings():
+                warnings.filterwarnings(**TORCHSCRIPT_DEPRECATED)
+                self.module = torch.jit.load(str(path), map_location=device).eval()
         except Exception as e:  # noqa: BLE001 - torch raises RuntimeError and others
             raise ModelFileError(f"cannot load {self.where}: {e}") from e
         S = resolution or getattr(self.module, "input_resolution", None)

@@ -8,6 +8,7 @@ module is what that script shares with the tests, which run it on tiny models. I
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -57,7 +58,7 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     (torch.onnx.export, dynamo=False; batch 1 as traced) when `onnx`, and `<stem>.joints.txt` (one
     name per line). Then load them with the pipeline's loaders and compare with the module on
     another crop. A failed ONNX export is reported in `onnx_error`, not raised."""
-    from .crop_pose import OnnxCropModel, TorchScriptCropModel
+    from .crop_pose import TORCHSCRIPT_DEPRECATED, OnnxCropModel, TorchScriptCropModel
 
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
@@ -71,9 +72,10 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     joints = stem.with_suffix(".joints.txt")
     joints.write_text("".join(f"{n}\n" for n in joint_names))
     ts = stem.with_suffix(".pt")
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.filterwarnings(**TORCHSCRIPT_DEPRECATED)
         traced = torch.jit.trace(module, example, check_trace=False)
-    torch.jit.save(torch.jit.script(WithResolution(traced, resolution)), str(ts))
+        torch.jit.save(torch.jit.script(WithResolution(traced, resolution)), str(ts))
 
     test = example_inputs(resolution, dtype, seed=1)
     with torch.inference_mode():
@@ -84,7 +86,8 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     if onnx:
         path = stem.with_suffix(".onnx")
         try:
-            with torch.no_grad():
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.filterwarnings("ignore", category=DeprecationWarning)  # the legacy exporter's own
                 torch.onnx.export(module, example, str(path), dynamo=False, opset_version=opset, do_constant_folding=True,
                                   input_names=["image", "intrinsics"], output_names=["poses3d"])
             dt = {torch.float32: "float32", torch.float16: "float16", torch.uint8: "uint8"}[dtype]
