@@ -388,3 +388,13 @@ def test_export_script_help_and_its_metrabs_wrapper(tmp_path):
     np.testing.assert_allclose(got, [[0.25 + 0.5, 200, 7], [0.25, 100, 0], [0.75, 100, 2]], atol=1e-6)
     saved = save_crop_model(wrapped, S, ["c", "a", "b"], tmp_path / "fake")
     assert max(saved.max_diff_mm.values()) < 1e-3 and read_joint_names(saved.joints) == ["c", "a", "b"]
+
+
+def test_a_pipeline_naming_a_bad_model_stops_before_any_work(synth_world, tmp_path):
+    """`run_pipeline` runs each backend's check() first: an NCHW model is refused, no store is made."""
+    bad = write_model(ChannelsFirst(), tmp_path / "nchw", "onnx", shape=(1, 3, S, S))
+    out = tmp_path / "s.zarr"
+    with pytest.raises(ModelFileError, match=r"nchw.onnx: input 'image' expected shape \[\?, \?, \?, 3\]"):
+        run_pipeline("synthetic", synth_world, out, progress=False,
+                     overrides=[*SMALL, "stages.pose.backend=onnx", "stages.pose.params={}", f"stages.pose.params.model={bad}"])
+    assert not out.exists() and not (tmp_path / "s.zarr.work").exists()
