@@ -61,12 +61,22 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K2
 
 
-def look_at_rotation(ray: np.ndarray) -> np.ndarray:
-    """The (3, 3) rotation taking the optical axis (0, 0, 1) to the unit direction of `ray` (3,)
-    by the shortest arc (about the axis z x ray, no roll). It turns a direction measured relative
-    to the viewing ray (as a crop seen frontally would give it) into the camera frame. The ray must
-    point into the half-space z > -1 (any ray through a pixel does)."""
+def look_at_rotation(ray: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """The (3, 3) rotation taking the optical axis (0, 0, 1) to the unit direction of `ray` (3,).
+    It turns a direction measured relative to the viewing ray (as a crop seen frontally would give
+    it) into the camera frame; its columns are the rotated camera's axes in the camera frame.
+
+    up None: the shortest arc (about the axis z x ray, no roll); the ray must point into the
+    half-space z > -1 (any ray through a pixel does). up (3,), e.g. (0, -1, 0): the rotated x
+    axis is ray x up, perpendicular to `up` (no roll about the world's vertical: MeTRAbs's
+    look-at); a ray along `up` falls back to the shortest arc.
+    """
     r = normalize(np.asarray(ray, np.float64))
+    if up is not None:
+        x = np.cross(r, np.asarray(up, np.float64))
+        if np.linalg.norm(x) > 1e-9:
+            x = normalize(x)
+            return np.stack([x, np.cross(r, x), r], axis=1)
     k = np.array([-r[1], r[0], 0.0])  # (0, 0, 1) x r: sin(angle) times the unit axis
     Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + Kx + Kx @ Kx / (1.0 + r[2])  # Rodrigues with cos(angle) = r_z

@@ -8,10 +8,10 @@ import pytest
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.params import defaults, field_docs, from_dict, json_schema
 from ga3ce_prep.pipeline.schema import SCHEMA_FILE, RunParams, build_schema, schema_text
-from ga3ce_prep.stages import BACKENDS, Planned, backend_class
+from ga3ce_prep.stages import BACKENDS, backend_class
 from ga3ce_prep.stages.base import BackendContext
 
-AVAILABLE = [k for k, v in BACKENDS.items() if not isinstance(v, Planned)]
+AVAILABLE = list(BACKENDS)
 
 
 def test_committed_schema_is_generated_from_the_params_dataclasses():

@@ -69,12 +69,9 @@ def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
     assert not (tmp_path / "s.zarr.work").exists()
 
 
-def test_planned_backend_is_not_available_yet(tmp_path):
-    model = tmp_path / "pose.onnx"
-    model.write_bytes(b"x")
-    with pytest.raises(ConfigError, match=r"stages.pose.backend: 'onnx' .* is not available yet.*oracle, precomputed"):
-        load_pipeline(_base(), tmp_path, overrides={"stages.pose": {"backend": "onnx", "params": {
-            "model": str(model)}}})
+def test_unknown_backend_names_the_known_ones(tmp_path):
+    with pytest.raises(ConfigError, match=r"stages.pose.backend: 'metrabs' is not one of .*'blazepose'.*'torchscript'"):
+        load_pipeline(_base(), tmp_path, overrides={"stages.pose": {"backend": "metrabs"}}, check_files=False)
 
 
 def test_missing_data_files_fail_before_any_work(tmp_path, synth_world):

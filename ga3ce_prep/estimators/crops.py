@@ -10,6 +10,10 @@ the right edge of the last) is converted with `continuous_to_index` before the i
 Parts of a crop outside the image are padded with zeros (the letterbox: the aspect ratio is kept
 and what the image lacks is filled; `letterbox_roi` is the whole image's), or with the image's
 border pixels repeated (BlazePose's landmark crop).
+
+A perspective crop (`look_at_crop`, `warp_homography`) is the MeTRAbs family's: a virtual camera
+turned toward a box's centre, with its own intrinsics K', renders the square crop through the
+homography K' R K^-1, so the crop is what a camera looking straight at the person would see.
 """
 from __future__ import annotations
 
@@ -18,6 +22,8 @@ from typing import Literal
 
 import cv2
 import numpy as np
+
+from ..geometry import back_project, look_at_rotation
 
 
 @dataclass(frozen=True)
@@ -96,5 +102,85 @@ def letterbox_roi(hw: tuple[int, int]) -> SquareRoi:
     return box_roi(np.array([-0.5, -0.5, w - 0.5, h - 0.5]), 1.0)
 
 
-__all__ = ["BORDERS", "SquareRoi", "apply_affine", "box_roi", "continuous_to_index", "crop", "invert_affine",
-           "letterbox_roi", "roi_affine", "rotation_2d"]
+@dataclass(frozen=True)
+class LookAtCrop:
+    """A virtual camera at the image camera's centre, turned toward a box's centre, and its
+    size x size image.
+
+    K: (3, 3) its intrinsics K' = [[s fx, 0, size/2], [0, s fy, size/2], [0, 0, 1]] (crop pixels,
+    index coordinates); R: (3, 3) camera frame -> crop camera frame, p_crop = R p_cam (its rows are
+    the crop camera's axes in the camera frame; row vectors go back with `points @ R`); H: (3, 3)
+    image pixels -> crop pixels, K' R K^-1 (index coordinates); size: the crop's side, pixels."""
+
+    K: np.ndarray
+    R: np.ndarray
+    H: np.ndarray
+    size: int
+
+
+def look_at_crop(K: np.ndarray, box: np.ndarray, size: int, scale: float = 1.0,
+                 up: tuple[float, float, float] = (0.0, -1.0, 0.0)) -> LookAtCrop:
+    """The crop MeTRAbs and NLF feed their crop model: R turns the optical axis to the ray
+    through the box centre, its x axis perpendicular to `up` (camera frame; (0, -1, 0): the
+    image's up; `geometry.look_at_rotation`); the zoom s makes the box's larger side, measured
+    between its side midpoints as the turned camera sees them, span size / scale crop pixels
+    (scale > 1 leaves a margin); the principal point is at (size/2, size/2).
+
+    K: (3, 3) image intrinsics (pixels); box: (4,) x1, y1, x2, y2 image pixels."""
+    K = np.asarray(K, np.float64)
+    x1, y1, x2, y2 = (float(c) for c in box)
+    cx, cy = 0.5 * (x1 + x2), 0.5 * (y1 + y2)
+    uv = np.array([[cx, cy], [cx, y1], [x2, cy], [cx, y2], [x1, cy]])   # centre, then top, right, bottom, left
+    rays = back_project(uv[:, 0], uv[:, 1], np.ones(5), K)              # (5, 3)
+    R = look_at_rotation(rays[0], np.asarray(up, np.float64)).T
+    q = rays[1:] @ R.T                                                  # the side midpoints in the crop camera
+    side = q[:, :2] / q[:, 2:] * np.array([K[0, 0], K[1, 1]])           # their pixels at zoom 1
+    extent = max(np.linalg.norm(side[0] - side[2]), np.linalg.norm(side[1] - side[3]))
+    s = size / (scale * extent)
+    Kc = np.array([[s * K[0, 0], 0.0, size / 2], [0.0, s * K[1, 1], size / 2], [0.0, 0.0, 1.0]])
+    return LookAtCrop(Kc, R, Kc @ R @ np.linalg.inv(K), int(size))
+
+
+def _pyramid_down(image: np.ndarray) -> np.ndarray:
+    """The 2x2 box average (an odd last row or column dropped): pixel i of the result is centred
+    on 2i + 0.5 of the input (index coordinates)."""
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    return cv2.resize(image[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA)  # exactly 2x: the 2x2 mean
+
+
+def warp_homography(image: np.ndarray, H: np.ndarray, size: int, levels: int = 3) -> np.ndarray:
+    """The size x size bilinear warp of an (H, W[, C]) image by the homography H (3, 3) (image
+    pixels -> output pixels, index coordinates), zeros outside the image, float32.
+
+    Antialiasing as MeTRAbs's warp does it: where the output shrinks the image by 2^l or more at
+    its centre (l < levels), it reads level l of a 2x2 box-average pyramid. Only the part of the
+    image the output sees enters the pyramid."""
+    Hi = np.linalg.inv(np.asarray(H, np.float64))
+    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [-0.5, size - 0.5, 1], [size - 0.5, size - 0.5, 1],
+                        [(size - 1) / 2, (size - 1) / 2, 1]])
+    src = corners @ Hi.T
+    h, w = image.shape[:2]
+    x0, y0, x1, y1 = 0, 0, w, h
+    if (src[:, 2] > 0).all():  # the footprint's bounding box, a margin of one top-level pixel
+        xy = src[:, :2] / src[:, 2:]
+        m = 2 ** levels
+        x0, y0 = (max(0, int(np.floor(c)) - m) for c in xy[:4].min(0))
+        x1, y1 = (min(n, int(np.ceil(c)) + m) for c, n in zip(xy[:4].max(0), (w, h)))
+    if x1 <= x0 or y1 <= y0:
+        return np.zeros((size, size, *image.shape[2:]), np.float32)
+    # source pixels per output pixel at the centre: the inverse map's Jacobian there
+    c, (u, v) = src[4], src[4, :2] / src[4, 2]
+    J = (Hi[:2, :2] - np.outer([u, v], Hi[2, :2])) / c[2]
+    level = int(np.clip(np.floor(0.5 * np.log2(max(abs(np.linalg.det(J)), 1e-12))), 0, levels - 1))
+    img = image[y0:y1, x0:x1].astype(np.float32, copy=False)
+    done = 0
+    while done < level and min(img.shape[:2]) >= 2:
+        img, done = _pyramid_down(img), done + 1
+    f = 2.0 ** done
+    up_to_image = np.array([[f, 0, x0 + (f - 1) / 2], [0, f, y0 + (f - 1) / 2], [0, 0, 1]])
+    return cv2.warpPerspective(img, np.asarray(H, np.float64) @ up_to_image, (size, size), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+__all__ = ["BORDERS", "LookAtCrop", "SquareRoi", "apply_affine", "box_roi", "continuous_to_index", "crop",
+           "invert_affine", "letterbox_roi", "look_at_crop", "roi_affine", "rotation_2d", "warp_homography"]

@@ -38,22 +38,14 @@ def _stage_schema(stage: str, names: list[str]) -> dict[str, Any]:
 
 
 def build_schema() -> dict[str, Any]:
-    """The whole pipeline schema (draft 2020-12). Imports every available backend's module."""
+    """The whole pipeline schema (draft 2020-12). Imports every backend's module."""
     from ..datasets import ADAPTERS
-    from ..stages import BACKENDS, STAGES, Planned, backend_class
+    from ..stages import BACKENDS, STAGES, backend_class
 
     defs: dict[str, Any] = {}
-    for key, entry in BACKENDS.items():
+    for key in BACKENDS:
         stage, name = key.split("/")
-        if isinstance(entry, Planned):
-            # open parameters; its model file is still checked first, so a pipeline naming it says
-            # which file it needs before saying the backend is not available yet
-            defs[f"{stage}.{name}"] = {
-                "type": "object", "description": f"not available yet: {entry.what}",
-                "properties": {"model": {"type": "string", "x-file": "model", "description": "the model file",
-                                         "x-hint": "export it with the ONNX estimators' tools (a later issue)"}}}
-        else:
-            defs[f"{stage}.{name}"] = json_schema(backend_class(stage, name).Params)
+        defs[f"{stage}.{name}"] = json_schema(backend_class(stage, name).Params)
     for stage in STAGES:
         defs[stage] = _stage_schema(stage, [k.split("/")[1] for k in BACKENDS if k.startswith(stage + "/")])
     run = json_schema(RunParams)

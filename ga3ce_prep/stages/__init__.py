@@ -14,13 +14,10 @@ A backend may read more upstream stages than its stage's own (`Backend.needs`, w
 to the pose when no face is visible. `upstream_of` gives a pipeline's effective dependencies.
 
 Backends are imported only when a pipeline names them (Open3D, h5py stay unloaded otherwise).
-Backends registered as `Planned` belong to a later issue: a pipeline naming one fails before any
-work with a clear message.
 """
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigError
@@ -40,14 +37,7 @@ DROPS_FRAME: dict[str, bool] = {
 }
 
 
-@dataclass(frozen=True)
-class Planned:
-    """A backend that a later issue provides; `what` says what it is."""
-
-    what: str
-
-
-BACKENDS: dict[str, str | Planned] = {
+BACKENDS: dict[str, str] = {
     "input/check": "ga3ce_prep.stages.input:CheckInput",
     "depth/sensor": "ga3ce_prep.stages.depth:SensorDepth",
     "depth/oracle": "ga3ce_prep.stages.depth:OracleDepth",
@@ -61,7 +51,8 @@ BACKENDS: dict[str, str | Planned] = {
     "pose/precomputed": "ga3ce_prep.stages.pose:PrecomputedPose",
     "pose/oracle": "ga3ce_prep.stages.pose:OraclePose",
     "pose/blazepose": "ga3ce_prep.stages.pose:BlazePose",
-    "pose/onnx": Planned("a smpl+head_30 crop pose model through ONNX Runtime"),
+    "pose/onnx": "ga3ce_prep.stages.pose_crop:OnnxPose",
+    "pose/torchscript": "ga3ce_prep.stages.pose_crop:TorchScriptPose",
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
     "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
@@ -72,16 +63,11 @@ BACKENDS: dict[str, str | Planned] = {
 
 
 def backend_class(stage: str, name: str) -> type[Backend]:
-    """The class registered as "stage/name"; ConfigError for unknown or planned backends."""
+    """The class registered as "stage/name"; ConfigError for an unknown one."""
     entry = BACKENDS.get(f"{stage}/{name}")
     if entry is None:
         known = sorted(k.split("/")[1] for k in BACKENDS if k.startswith(stage + "/"))
         raise ConfigError(f"stages.{stage}.backend: unknown backend {name!r}; known: {', '.join(known)}")
-    if isinstance(entry, Planned):
-        ready = sorted(k.split("/")[1] for k, v in BACKENDS.items()
-                       if k.startswith(stage + "/") and not isinstance(v, Planned))
-        raise ConfigError(f"stages.{stage}.backend: {name!r} ({entry.what}) is not available yet in this "
-                          f"build; use one of: {', '.join(ready)}")
     module, cls = entry.split(":")
     return getattr(importlib.import_module(module), cls)
 
@@ -91,8 +77,7 @@ def upstream_of(backends: dict[str, str]) -> dict[str, tuple[str, ...]]:
     plus what the backend `needs`. ConfigError for a need outside OPTIONAL_UPSTREAM."""
     up = {}
     for stage in STAGES:
-        entry = BACKENDS.get(f"{stage}/{backends[stage]}")
-        needs = () if entry is None or isinstance(entry, Planned) else backend_class(stage, backends[stage]).needs
+        needs = backend_class(stage, backends[stage]).needs
         bad = [n for n in needs if n not in OPTIONAL_UPSTREAM.get(stage, ())]
         if bad:
             raise ConfigError(f"stages.{stage}: backend {backends[stage]!r} needs {bad}, which a {stage} backend "
@@ -126,5 +111,5 @@ def dependency_order(upstream: dict[str, tuple[str, ...]]) -> list[str]:
     return order
 
 
-__all__ = ["BACKENDS", "DROPS_FRAME", "OPTIONAL_UPSTREAM", "STAGES", "UPSTREAM", "Planned", "backend_class",
+__all__ = ["BACKENDS", "DROPS_FRAME", "OPTIONAL_UPSTREAM", "STAGES", "UPSTREAM", "backend_class",
            "call_backend", "dependency_order", "upstream_of"]

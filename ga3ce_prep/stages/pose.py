@@ -4,7 +4,8 @@ camera frame. A failure degrades the frame (NaN pose); GA3CE then runs without t
 Backends: `precomputed` (an offline estimator's output, stages/precomputed.py layout), `oracle`
 (the synthetic truth plus estimator-like seeded noise, stages/oracle_noise.py `noisy_pose`) and
 `blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/blazepose.py; it
-reads the depth stage's map, so it runs in the geometry task).
+reads the depth stage's map, so it runs in the geometry task). The paper's MeTRAbs-family crop
+model from the user's file: `onnx` and `torchscript`, in stages/pose_crop.py.
 """
 from __future__ import annotations
 
