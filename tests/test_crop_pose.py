@@ -24,6 +24,7 @@ from ga3ce_prep.skeleton import JOINT_NAMES
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store
+from ga3ce_prep.testing.paper_models import Constant
 from ga3ce_prep.testing.worlds import SMALL
 
 # torch 2.13 deprecates TorchScript and the legacy ONNX exporter, which the tiny models are written with
@@ -37,18 +38,6 @@ BACKENDS = ("onnx", "torchscript")
 
 
 # --- tiny models: forward(image [N,S,S,3], intrinsics [N,3,3]) -> [N,J,3] mm in the crop camera --------
-
-
-class Constant(torch.nn.Module):
-    """Fixed joints (J, 3) mm; the inputs enter with weight 0 (so the ONNX graph keeps them)."""
-
-    def __init__(self, joints_mm: np.ndarray):
-        super().__init__()
-        self.register_buffer("joints", torch.as_tensor(joints_mm, dtype=torch.float32))
-
-    def forward(self, image: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
-        zero = 0.0 * (image.float().mean() + intrinsics.sum())
-        return self.joints[None].expand(image.shape[0], -1, -1) + zero
 
 
 class Probe(torch.nn.Module):

@@ -15,12 +15,13 @@ from onnx import TensorProto, helper
 
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
 from ga3ce_prep.estimators.cli import export_gfie_view
-from ga3ce_prep.estimators.gfie_head import PREFIX, GFIEHeadEstimator, GFIEHeadNet, load_gfie_head
+from ga3ce_prep.estimators.gfie_head import GFIEHeadEstimator, GFIEHeadNet, load_gfie_head
 from ga3ce_prep.estimators.head_crop import CropParams, expand_box, head_crop, head_input
 from ga3ce_prep.estimators.head_onnx import HeadOnnxEstimator, HeadOnnxOptions
 from ga3ce_prep.estimators.resnet import ResNet50
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
+from ga3ce_prep.testing.paper_models import gfie_checkpoint, gfie_state, random_gfie_net
 from ga3ce_prep.testing.worlds import SMALL
 
 torch.set_num_threads(1)
@@ -28,33 +29,6 @@ torch.set_num_threads(1)
 # (c / 255 - ImageNet mean) / ImageNet std of the RGB colour (200, 100, 50), by hand
 RGB = (200, 100, 50)
 RGB_NORMALISED = np.array([(200 / 255 - 0.485) / 0.229, (100 / 255 - 0.456) / 0.224, (50 / 255 - 0.406) / 0.225])
-
-
-def random_gfie_net(seed: int = 0) -> GFIEHeadNet:
-    """GFIE's head network with random weights and random BN statistics (so a load that skipped
-    any tensor would change the output)."""
-    torch.manual_seed(seed)
-    net = GFIEHeadNet()
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.1, 0.1)
-            m.running_var.uniform_(0.5, 1.5)
-            m.weight.data.uniform_(0.5, 1.5)
-    return net.eval()
-
-
-def gfie_checkpoint(state: dict) -> dict:
-    """What GFIE's save_checkpoint writes (utils/model_utils.py): the whole GFIENet's state dict
-    (here the head branch under `egd_module.` and two tensors of the heatmap branch), the epoch, the
-    validation errors as numpy float64 and the optimiser's state."""
-    return {"epoch": 12, "state_dict": state, "best_dist_err": np.float64(0.0697), "best_cosine_err": np.float64(0.82),
-            "optimizer": {"state": {}, "param_groups": [{"lr": 1e-4, "betas": (0.9, 0.999), "eps": 1e-8,
-                                                         "weight_decay": 1e-4, "amsgrad": False, "params": [0, 1]}]}}
-
-
-def gfie_state(net: GFIEHeadNet) -> dict:
-    return {**{PREFIX + k: v for k, v in net.state_dict().items()},
-            "ggh_module.encoder.conv1.weight": torch.randn(64, 6, 7, 7), "ggh_module.decoder.conv4.bias": torch.zeros(1)}
 
 
 @pytest.fixture(scope="module")

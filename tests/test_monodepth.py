@@ -19,35 +19,8 @@ from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.truth import TruthReader
+from ga3ce_prep.testing.paper_models import linear_depth_model
 from ga3ce_prep.testing.photos import K_from_hfov, photo, photo_frame
-
-
-def linear_model(path: Path, outputs: dict[str, tuple[float, float]], *, layout: str = "nchw",
-                 size: tuple[int | str, int | str] = ("h", "w"), n_inputs: int = 1) -> Path:
-    """An ONNX file: one float input (1, 3, H, W) or (1, H, W, 3) (int: fixed, str: dynamic), and per
-    output name -> (a, b) an output a * channel0 + b of shape (1, 1, H, W) (nhwc: (1, H, W, 1))."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
-
-    caxis = 1 if layout == "nchw" else 3
-    shape = [1, 3, *size] if layout == "nchw" else [1, *size, 3]
-    oshape = [1, 1, *size] if layout == "nchw" else [1, *size, 1]
-    inits = [numpy_helper.from_array(np.array(v, np.int64), n) for n, v in
-             (("starts", [0]), ("ends", [1]), ("axes", [caxis]))]
-    nodes = [helper.make_node("Slice", ["image", "starts", "ends", "axes"], ["c0"])]
-    outs = []
-    for name, (a, b) in outputs.items():
-        inits += [numpy_helper.from_array(np.array(a, np.float32), f"a_{name}"),
-                  numpy_helper.from_array(np.array(b, np.float32), f"b_{name}")]
-        nodes += [helper.make_node("Mul", ["c0", f"a_{name}"], [f"m_{name}"]),
-                  helper.make_node("Add", [f"m_{name}", f"b_{name}"], [name])]
-        outs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, oshape))
-    ins = [helper.make_tensor_value_info(f"in{i}" if i else "image", TensorProto.FLOAT, shape) for i in range(n_inputs)]
-    graph = helper.make_graph(nodes, "linear_depth", ins, outs, inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.save(model, str(path))
-    return path
 
 
 def _rgb(h: int, w: int, r, g=40, b=200) -> np.ndarray:
@@ -83,7 +56,7 @@ def test_presets_sizes_follow_the_official_resize_rules():
 
 @pytest.mark.parametrize("layout", ["nchw", "nhwc"])
 def test_normalisation_and_layout_reach_the_network(tmp_path, layout):
-    m = linear_model(tmp_path / "m.onnx", {"depth": (1.0, 0.0)}, layout=layout, size=(24, 32))
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (1.0, 0.0)}, layout=layout, size=(24, 32))
     img = _rgb(48, 64, 153)
     d = _est(m, layout=layout).predict(img, K).depth                       # 153 / 255 = 0.6
     np.testing.assert_allclose(d, 0.6, rtol=1e-6)
@@ -98,7 +71,7 @@ def test_normalisation_and_layout_reach_the_network(tmp_path, layout):
 def test_resize_back_keeps_the_image_layout(tmp_path):
     """A left/right split image through a network at another size and aspect comes back split
     where it was, at the image resolution."""
-    m = linear_model(tmp_path / "m.onnx", {"depth": (10.0, 0.0)})
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (10.0, 0.0)})
     img = _rgb(48, 64, 51)
     img[:, 32:, 0] = 204
     for opt in (dict(size=(20, 20)), dict(size=(30, 40), resize="keep_aspect", multiple=7)):
@@ -112,7 +85,7 @@ def test_resize_back_keeps_the_image_layout(tmp_path):
 
 
 def test_crop_and_focal_rescale(tmp_path):
-    m = linear_model(tmp_path / "m.onnx", {"depth": (0.0, 2.0)}, size=(30, 40))
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (0.0, 2.0)}, size=(30, 40))
     img = _rgb(40, 90, 100)                                                # wide: 4:3 crop is 53 x 40
     r = _est(m, crop_aspect=(4, 3), focal_px=50.0).predict(img, K)
     assert r.crop == (18, 0, 53, 40)
@@ -124,23 +97,23 @@ def test_crop_and_focal_rescale(tmp_path):
 @pytest.mark.parametrize("units, b, metres", [("m", 2.5, 2.5), ("cm", 250.0, 2.5), ("mm", 2500.0, 2.5),
                                                ("inverse_m", 0.4, 2.5)])
 def test_units_to_metres(tmp_path, units, b, metres):
-    m = linear_model(tmp_path / "m.onnx", {"depth": (0.0, b)}, size=(24, 32))
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (0.0, b)}, size=(24, 32))
     np.testing.assert_allclose(_est(m, units=units).predict(_rgb(48, 64, 9), K).depth, metres, rtol=1e-6)
 
 
 def test_implausible_depth_refused_naming_the_file_and_the_units(tmp_path):
-    mm = linear_model(tmp_path / "in_mm.onnx", {"depth": (0.0, 2400.0)}, size=(24, 32))
+    mm = linear_depth_model(tmp_path / "in_mm.onnx", {"depth": (0.0, 2400.0)}, size=(24, 32))
     with pytest.raises(FrameError, match=r"in_mm.onnx: median depth 2400 m \(read as units m\).*plausible 0.1-100 m; "
                                          r"read as .*mm \(2.4 m\).* it would be plausible: set the units"):
         _est(mm, fix="the units").predict(_rgb(48, 64, 9), K)
-    metres = linear_model(tmp_path / "in_m.onnx", {"depth": (0.0, 2.4)}, size=(24, 32))
+    metres = linear_depth_model(tmp_path / "in_m.onnx", {"depth": (0.0, 2.4)}, size=(24, 32))
     with pytest.raises(FrameError, match=r"in_m.onnx: median depth 0.0024 m \(read as units mm\).*m \(2.4 m\)"):
         _est(metres, units="mm").predict(_rgb(48, 64, 9), K)
-    zero = linear_model(tmp_path / "zero.onnx", {"depth": (0.0, 0.0)}, size=(24, 32))
+    zero = linear_depth_model(tmp_path / "zero.onnx", {"depth": (0.0, 0.0)}, size=(24, 32))
     with pytest.raises(FrameError, match="no positive depth"):
         _est(zero).predict(_rgb(48, 64, 9), K)
     # inverse depth: pixels beyond the plausible maximum (near-zero inverse depth) become unknown
-    inv = linear_model(tmp_path / "inv.onnx", {"depth": (1.0, 0.0)}, size=(24, 32))
+    inv = linear_depth_model(tmp_path / "inv.onnx", {"depth": (1.0, 0.0)}, size=(24, 32))
     img = _rgb(48, 64, 128)
     img[:, :20, 0] = 1                                                     # 1/255 -> 255 m
     r = _est(inv, units="inverse_m", interpolation="area").predict(img, K)
@@ -149,7 +122,7 @@ def test_implausible_depth_refused_naming_the_file_and_the_units(tmp_path):
 
 
 def test_output_by_name_or_index_and_interface_errors(tmp_path):
-    m = linear_model(tmp_path / "two.onnx", {"relative": (0.0, 7.0), "metric": (0.0, 2.0)}, size=(24, 32))
+    m = linear_depth_model(tmp_path / "two.onnx", {"relative": (0.0, 7.0), "metric": (0.0, 2.0)}, size=(24, 32))
     img = _rgb(48, 64, 9)
     np.testing.assert_allclose(_est(m).predict(img, K).depth, 7.0)
     np.testing.assert_allclose(_est(m, output_index=1).predict(img, K).depth, 2.0)
@@ -159,10 +132,10 @@ def test_output_by_name_or_index_and_interface_errors(tmp_path):
     with pytest.raises(ModelFileError, match="output_index 2 but the file has 2 outputs"):
         _est(m, output_index=2)
     with pytest.raises(ModelFileError, match="2 inputs"):
-        _est(linear_model(tmp_path / "in2.onnx", {"d": (1, 0)}, n_inputs=2, size=(24, 32)))
+        _est(linear_depth_model(tmp_path / "in2.onnx", {"d": (1, 0)}, n_inputs=2, size=(24, 32)))
     with pytest.raises(ModelFileError, match=r"\[1, 24, 32, 3\] has 24 channels where layout nchw puts them; expected 3 \(set layout: nhwc"):
-        _est(linear_model(tmp_path / "nhwc.onnx", {"d": (1, 0)}, layout="nhwc", size=(24, 32)))
-    dyn = linear_model(tmp_path / "dyn.onnx", {"d": (0, 2)})
+        _est(linear_depth_model(tmp_path / "nhwc.onnx", {"d": (1, 0)}, layout="nhwc", size=(24, 32)))
+    dyn = linear_depth_model(tmp_path / "dyn.onnx", {"d": (0, 2)})
     with pytest.raises(ModelFileError, match="no fixed height and width; set the depth backend's size"):
         _est(dyn)
     with pytest.raises(ModelFileError, match=r"fixed at 24x32 \(HxW\) but size is \[20, 20\]"):
@@ -183,7 +156,7 @@ def _frame(tmp_path: Path, img: np.ndarray) -> FrameRef:
 
 
 def test_onnx_backend_resolves_its_preset(tmp_path):
-    m = linear_model(tmp_path / "m.onnx", {"depth": (1.0, 0.0)})           # dynamic size
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (1.0, 0.0)})           # dynamic size
     ctx = BackendContext(tmp_path)
     b = backend_class("depth", "onnx")({"model": str(m), "preset": "depth-anything-v2-metric-indoor", "threads": 1}, ctx)
     b.check()
@@ -211,7 +184,7 @@ def test_fastdepth_is_the_onnx_runner_with_the_fastdepth_preset(tmp_path):
 
 def test_onnx_depth_end_to_end(tmp_path, synth_world):
     """A constant 3 m network through run_pipeline: head positions and object medians at z = 3 m."""
-    m = linear_model(tmp_path / "m.onnx", {"depth": (0.0, 3.0)}, size=(60, 80))
+    m = linear_depth_model(tmp_path / "m.onnx", {"depth": (0.0, 3.0)}, size=(60, 80))
     s = run_pipeline("synthetic-oracle", synth_world, tmp_path / "s.zarr", progress=False, overrides={
         "stages.depth": {"backend": "onnx", "params": {"model": str(m), "preset": "custom", "threads": 1}}})
     st = open_store(tmp_path / "s.zarr")

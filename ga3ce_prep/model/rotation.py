@@ -76,7 +76,6 @@ def axis_angle_rotation(v: Array) -> Array:
     safe = xp.where(degenerate, xp.ones_like(s), s)
     kx = xp.where(degenerate, xp.ones_like(s), vy / safe)
     ky = xp.where(degenerate, xp.zeros_like(s), -vx / safe)
-    zero = xp.zeros_like(vx)
     t = 1.0 - c
     # R = c I + s [k]x + (1 - c) k k^T with k = (kx, ky, 0)
     return _matrix([[c + t * kx * kx, t * kx * ky, s * ky],

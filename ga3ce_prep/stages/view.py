@@ -200,9 +200,8 @@ class GafaView(ProcessEstimator, ViewBackend):
         model: Path = param(file="model", hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models.md)")  # ONNX of GAFA's GazeNet (7 frames): image, head_mask, body_dv -> gaze
 
     def check(self) -> None:
-        from ..estimators.onnx_runtime import resolve_providers
-
-        resolve_providers(self.p.providers)
+        """Before any work: the providers and the file's interface (GazeNet's inputs and output)."""
+        self.estimator()
 
     def build_estimator(self):
         from ..estimators.gafa_view import GafaViewEstimator
