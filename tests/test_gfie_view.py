@@ -289,3 +289,26 @@ def test_a_network_that_gives_no_direction_fails_the_frame(ckpt_path):
         est.net.fc[2].bias.zero_()
     with pytest.raises(FrameError, match="not a direction"):
         est.estimate(uniform_image(120, 160), np.array([40, 30, 70, 80]))
+
+
+def test_batched_views_equal_one_by_one_and_a_bad_image_fails_only_its_frame(synth_world, ckpt_path, tmp_path):
+    """view/gfie runs a shard's heads in batches: the same v as one head per forward pass, and a
+    frame whose image is damaged becomes a failure record while its batch neighbours are kept."""
+    import shutil
+
+    def views(batch: int, world, out):
+        over = [*SMALL, "stages.view.backend=gfie", "run.shard_size=12",
+                f"stages.view.params={{checkpoint: {ckpt_path}, batch_size: {batch}}}"]
+        run_pipeline("synthetic", world, out, overrides=over, progress=False)
+        return open_store(out)
+
+    one, five = views(1, synth_world, tmp_path / "a.zarr"), views(5, synth_world, tmp_path / "b.zarr")
+    np.testing.assert_array_equal(one.frames["id"], five.frames["id"])
+    np.testing.assert_allclose(five.frames["view"], one.frames["view"], atol=1e-5)
+    world = tmp_path / "world"
+    shutil.copytree(synth_world, world)
+    bad = sorted((world / "rgb").rglob("*.jpg"))[2]
+    bad.write_bytes(bad.read_bytes()[:200])                     # truncated JPEG
+    s = views(5, world, tmp_path / "c.zarr")
+    assert len(s) == 11
+    assert s.failures["stage"].tolist() == ["input"]            # caught by the input check, not the batch

@@ -40,3 +40,28 @@ def test_facemesh_view_falls_back_to_the_pose_and_the_store_says_so(synth_world,
     assert again.computed_shards["depth"] == 0
     s2 = open_store(out)
     assert not np.allclose(s2.frames["view"], s.frames["view"])
+
+
+def test_a_batch_that_raises_is_retried_frame_by_frame():
+    """StageEntry.attempt_batch: one frame that breaks its batch's call fails alone; a per-frame
+    exception in the batch's results is that frame's failure record."""
+    from pathlib import Path
+
+    from ga3ce_prep.errors import FrameError
+    from ga3ce_prep.frames import FrameRef
+    from ga3ce_prep.pipeline.tasks import Shard, new_entry
+
+    frames = [FrameRef(id=n, split="test", scene="s", image_path=Path(f"{n}.jpg"), K=np.eye(3), image_size=(4, 4),
+                       head_box=np.zeros(4, np.float32)) for n in "abcd"]
+    entry = new_entry("view", Shard(0, frames))
+
+    def views(fs):
+        if any(f.id == "b" for f in fs):
+            raise FrameError("b is broken")
+        return [FrameError("d has no face") if f.id == "d" else np.array([0, 0, -1.0], np.float32) for f in fs]
+
+    entry.attempt_batch([0, 1, 2, 3], views, frames, {})
+    assert entry.mask.tolist() == [True, False, True, False]
+    assert entry.fail_idx == [1, 3]
+    assert entry.fail_message == ["b is broken", "d has no face"]
+    np.testing.assert_array_equal(entry.columns["view"][[0, 2]], [[0, 0, -1], [0, 0, -1]])

@@ -120,12 +120,19 @@ class GFIEHeadEstimator:
         """v for the head in box (4,) x1, y1, x2, y2 pixels of an (H, W, 3) uint8 RGB image:
         (3,) float32 unit, camera frame. FrameError if the network gives no direction (a zero or
         non-finite vector)."""
-        x = torch.from_numpy(head_input(rgb, box, CropParams())).to(self.device)
-        with torch.inference_mode():
-            v = self.net(x)[0].cpu().numpy().astype(np.float32)
-        if not abs(float(np.linalg.norm(v)) - 1) < 1e-3:
-            raise FrameError(f"GFIE's head network gave {v.tolist()}, not a direction")
+        v = self.estimate_batch([head_input(rgb, box, CropParams())])[0]
+        if isinstance(v, Exception):
+            raise v
         return v
+
+    def estimate_batch(self, inputs: list[np.ndarray]) -> list[np.ndarray | FrameError]:
+        """v for N network inputs (`head_input`, each (1, 3, 224, 224)) in one forward pass: per
+        input (3,) float32 unit, or the FrameError of an output that is not a direction."""
+        x = torch.from_numpy(np.concatenate(inputs)).to(self.device)
+        with torch.inference_mode():
+            vs = self.net(x).cpu().numpy().astype(np.float32)
+        return [v if abs(float(np.linalg.norm(v)) - 1) < 1e-3 else
+                FrameError(f"GFIE's head network gave {v.tolist()}, not a direction") for v in vs]
 
 
 def export_onnx(checkpoint: str | Path, out: str | Path, opset: int = 17) -> Path:

@@ -202,6 +202,23 @@ class StageEntry:
         finally:
             self.seconds += time.perf_counter() - t
 
+    def attempt_batch(self, rows: list[int], fn: Callable[..., list], frames: list[FrameRef],
+                      needs: dict[str, list[Any]]) -> None:
+        """fn(frames, **needs) -> one result or Exception per frame, for frames `rows` of the shard
+        in one call, each recorded on its frame. If the call itself raises, the frames are tried one
+        by one, so the failure lands on the frame that caused it."""
+        t = time.perf_counter()
+        try:
+            results = fn(frames, **needs)
+        except Exception:  # noqa: BLE001 - a frame's problem: found frame by frame below
+            results = None
+        self.seconds += time.perf_counter() - t
+        for k, i in enumerate(rows):
+            if results is None:
+                self.attempt(i, lambda: _first(fn([frames[k]], **{n: v[k:k + 1] for n, v in needs.items()})))
+            else:
+                self.attempt(i, _first, [results[k]])
+
     def report(self, computed: bool) -> StageReport:
         return StageReport(self.stage, len(self.shard.frames), computed, self.seconds)
 
@@ -214,6 +231,13 @@ class StageEntry:
             "fail_idx": np.array(self.fail_idx, np.int64), "fail_error": np.array(self.fail_error, dtype=str),
             "fail_message": np.array(self.fail_message, dtype=str), **self.columns, **ragged, **self.arrays})
         return self.report(True)
+
+
+def _first(results: list[Any]) -> Any:
+    """The first of a batched call's per-frame results; raises it when it is an exception."""
+    if isinstance(results[0], Exception):
+        raise results[0]
+    return results[0]
 
 
 def _shaped(v: Any, shape: tuple[int, ...], stage: str) -> np.ndarray:
@@ -300,7 +324,15 @@ def stage_task(env: TaskEnv, stage: str, shard: Shard, *_upstream: Any) -> list[
     _single_threaded()
     entry = new_entry(stage, shard, _sources(env, stage))
     loaded = {u: _values(cache, u, shard) for u in env.upstream[stage] if u != "input"}
-    for i in np.flatnonzero(_load_ok(cache, "input", shard)):
+    b = backend(env, stage)
+    rows = np.flatnonzero(_load_ok(cache, "input", shard)).tolist()
+    if b.batch_size() > 1:  # the backend's network runs on several frames at once
+        for k in range(0, len(rows), b.batch_size()):
+            chunk = rows[k:k + b.batch_size()]
+            entry.attempt_batch(chunk, getattr(b, f"{stage}_batch"), [shard.frames[i] for i in chunk],
+                                {n: [loaded[n][i] for i in chunk] for n in b.needs})
+        return [entry.save(cache)]
+    for i in rows:
         _call(env, entry, i, shard.frames[i], {u: v[i] for u, v in loaded.items()})
     return [entry.save(cache)]
 

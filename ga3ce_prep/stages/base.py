@@ -92,6 +92,9 @@ class Backend:
     # Upstream stages the per-frame method also reads, passed by keyword (`view(frame, pose=...)`):
     # allowed ones are stages.OPTIONAL_UPSTREAM. A failed upstream frame passes NaN.
     needs: ClassVar[tuple[str, ...]] = ()
+    # A backend that runs its network on several frames at once also defines `<stage>_batch(frames,
+    # **needs) -> list` (one result or Exception per frame, needs as lists) and `batch_size()`; the
+    # pipeline then calls it on up to batch_size() frames of a shard at a time (pose and view tasks).
     # The ways a frame's result can come about; when set, the per-frame method returns `Sourced`
     # and the store records the source of every frame (frames/<stage>_source).
     sources: ClassVar[tuple[str, ...]] = ()
@@ -104,6 +107,10 @@ class Backend:
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")
         self.ctx = ctx
+
+    def batch_size(self) -> int:
+        """Frames per `<stage>_batch` call (1: the backend has no batched method)."""
+        return 1
 
     def registry_keys(self) -> tuple[str, ...]:
         """The registry models (`registry_models` keys) this backend runs: `check()` verifies their
