@@ -128,3 +128,14 @@ class GA3CE(nn.Module):
                 if c.cone_bias else None)
         g_prime = self.head(self.transformer(subject, tokens, mask, bias))
         return nn.functional.normalize(torch.einsum("bji,bj->bi", ctx.R, g_prime) + view, dim=-1, eps=1e-9)
+
+    def cross_attention(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
+                        objects: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward's g (B, 3), unchanged, and the decoder's cross-attention weights (B, layers,
+        heads, 1 + S) over [null token, objects] (GazeTransformer.record_cross_attention; S = 0
+        when use_objects is off). Eval mode; the appearance-only model (use_context off) has none."""
+        if not self.config.use_context:
+            raise ValueError("this model has no attention: use_context is off (the appearance-only row, g = v)")
+        with self.transformer.record_cross_attention() as record:
+            g = self(view, pose, head_pos, objects, mask)
+        return g, torch.stack(record, dim=1)

@@ -8,8 +8,14 @@ additive per-object bias, the gaze-cone bias: cos(v, direction of the object fro
 A learned null object token sits first in the encoder input and is never masked: a frame with no
 objects (or the "no objects" ablation) attends to it alone, and no attention row is ever fully
 masked (which would give NaN through the softmax).
+
+`GazeTransformer.record_cross_attention()` exposes the decoder's cross-attention weights through
+forward hooks that leave every output unchanged.
 """
 from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import nn
@@ -63,6 +69,35 @@ class GazeTransformer(nn.Module):
             dropout=dropout, batch_first=True, norm_first=norm_first)
         # plain padded tensors: the prototype nested-tensor path changes nothing but speed and warns
         self.transformer.encoder.use_nested_tensor = False
+
+    @contextmanager
+    def record_cross_attention(self) -> Iterator[list[torch.Tensor]]:
+        """Record the decoder's cross-attention weights of the forward passes run in the block.
+
+        Yields a list that receives, per decoder layer and forward pass in order, the weights
+        (B, heads, 1 + S) of the subject token over [null token, objects] (each row sums to 1,
+        padding gets 0). A forward hook on each layer's attention recomputes them from the layer's
+        own inputs with torch's attention (need_weights=True) and returns nothing, so the model's
+        outputs are unchanged. Eval mode only: in training the recomputation would draw dropout.
+        """
+        if self.training:
+            raise RuntimeError("record_cross_attention needs eval mode (model.eval()): in training "
+                               "its recomputation would draw dropout and change the outputs")
+        record: list[torch.Tensor] = []
+
+        def hook(module: nn.MultiheadAttention, args: tuple, kwargs: dict, output: tuple) -> None:
+            _, w = module.forward(*args[:3], attn_mask=kwargs.get("attn_mask"),
+                                  key_padding_mask=kwargs.get("key_padding_mask"),
+                                  need_weights=True, average_attn_weights=False)
+            record.append(w[:, :, 0].detach())                       # (B, heads, 1 query, 1 + S) -> (B, heads, 1 + S)
+
+        handles = [layer.multihead_attn.register_forward_hook(hook, with_kwargs=True)
+                   for layer in self.transformer.decoder.layers]
+        try:
+            yield record
+        finally:
+            for h in handles:
+                h.remove()
 
     def forward(self, subject: torch.Tensor, objects: torch.Tensor, mask: torch.Tensor,
                 bias: torch.Tensor | None) -> torch.Tensor:
