@@ -2,8 +2,9 @@
 
 PNG (OpenCV drawing): the head box (green), the stored object positions projected into the image
 (dots coloured near = warm, far = cool, size by mask area), the head position t_object (yellow
-cross), the view prior v (blue arrow) and the ground-truth gaze (red arrow), both drawn from the
-head position over `arrow_m` metres, and the pose joints (magenta dots) when present.
+cross), the view prior v (blue arrow), the ground-truth gaze (red arrow) and, when given, a
+predicted gaze (orange arrow), all drawn from the head position over `arrow_m` metres, and the pose
+joints (magenta dots) when present.
 
 PLY (Open3D): the frame's back-projected depth (coloured by the image when readable, grey
 otherwise), each object position as a small red cube of points, the head position (yellow), v and
@@ -22,7 +23,8 @@ from .frames import FrameRef, load_depth, load_rgb
 from .geometry import depth_to_points, normalize, project
 from .store import ContextStore
 
-BLUE, RED, GREEN, YELLOW, MAGENTA = (255, 120, 0), (40, 40, 230), (60, 200, 60), (0, 230, 255), (230, 60, 230)  # BGR
+BLUE, RED, GREEN, YELLOW, MAGENTA, ORANGE = ((255, 120, 0), (40, 40, 230), (60, 200, 60), (0, 230, 255),
+                                             (230, 60, 230), (0, 150, 255))  # BGR
 
 
 def frame_index(store: ContextStore, frame_id: str) -> int:
@@ -36,34 +38,39 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
     raise StoreError(f"frame {frame_id!r} is not in {store.path}{why}; e.g. {near or store.frames['id'][:3].tolist()}")
 
 
-def find_frame_ref(store: ContextStore, frame_id: str, data: str | Path | None = None) -> FrameRef | None:
-    """The dataset's FrameRef for frame_id (re-opens the dataset the store was made from, or
-    `data`), or None if the dataset cannot be opened."""
+def find_frame_refs(store: ContextStore, frame_ids: list[str], data: str | Path | None = None) -> dict[str, FrameRef]:
+    """The dataset's FrameRefs of frame_ids found in it (re-opens the dataset the store was made
+    from, or `data`, once); empty if the dataset cannot be opened."""
     from .datasets import open_dataset
 
     ds = store.attrs.get("dataset", {})
     root = data or ds.get("root")
+    wanted, found = set(frame_ids), {}
     try:
         adapter = open_dataset(ds.get("name", ""), root, **(ds.get("options") or {}))
         for f in adapter.frames():
-            if f.id == frame_id:
-                return f
+            if f.id in wanted:
+                found[f.id] = f
+                if len(found) == len(wanted):
+                    break
     except (Ga3ceError, KeyError, OSError, TypeError):
-        return None
-    return None
+        return {}
+    return found
+
+
+def find_frame_ref(store: ContextStore, frame_id: str, data: str | Path | None = None) -> FrameRef | None:
+    """The dataset's FrameRef for frame_id (find_frame_refs), or None."""
+    return find_frame_refs(store, [frame_id], data).get(frame_id)
 
 
 def _ray(p0: np.ndarray, d: np.ndarray, length: float) -> np.ndarray:
     return np.stack([p0, p0 + length * normalize(d)])
 
 
-def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float = 0.6,
-             gaze_label: str = "ground-truth gaze") -> np.ndarray:
-    """The drawing (H', W', 3) uint8 BGR, upscaled so the shorter side is at least 480 px; the red
-    arrow is frames/gaze, named `gaze_label` in the legend."""
-    fr = store.frames
-    K = fr["K"][i].astype(np.float64)
-    W, H = (int(x) for x in fr["image_size"][i])
+def frame_canvas(store: ContextStore, i: int, ref: FrameRef | None) -> tuple[np.ndarray, float]:
+    """Frame i's image (H', W', 3) uint8 BGR (grey where it cannot be read), upscaled so the
+    shorter side is at least 480 px, and that scale s (pixel coordinates times s)."""
+    W, H = (int(x) for x in store.frames["image_size"][i])
     img = None
     if ref is not None:
         try:
@@ -75,6 +82,17 @@ def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float =
     H, W = img.shape[:2]
     s = max(1.0, 480.0 / min(H, W))
     img = cv2.resize(img, (int(round(W * s)), int(round(H * s))), interpolation=cv2.INTER_LINEAR) if s > 1 else img
+    return img, s
+
+
+def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float = 0.6,
+             gaze_label: str = "ground-truth gaze", pred: np.ndarray | None = None,
+             pred_label: str = "ours g") -> np.ndarray:
+    """The drawing (H', W', 3) uint8 BGR on frame_canvas; the red arrow is frames/gaze, named
+    `gaze_label` in the legend; `pred` (3,), when given, is the orange arrow `pred_label`."""
+    fr = store.frames
+    K = fr["K"][i].astype(np.float64)
+    img, s = frame_canvas(store, i, ref)
 
     def px(pts: np.ndarray) -> np.ndarray:
         return project(np.atleast_2d(pts), K) * s
@@ -101,16 +119,18 @@ def draw_png(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: float =
         if np.isfinite(u) and np.isfinite(v):
             cv2.circle(img, pt((u, v)), 3, MAGENTA, -1)
     head = fr["head_pos"][i].astype(np.float64)
-    for vec, colour in ((fr["view"][i], BLUE), (fr["gaze"][i], RED)):
+    arrows = [(fr["view"][i], BLUE), (fr["gaze"][i], RED)] + ([] if pred is None else [(pred, ORANGE)])
+    for vec, colour in arrows:
         if np.all(np.isfinite(vec)) and np.all(np.isfinite(head)):
-            a, b = px(_ray(head, vec.astype(np.float64), arrow_m))
+            a, b = px(_ray(head, np.asarray(vec, np.float64), arrow_m))
             if np.all(np.isfinite(a)) and np.all(np.isfinite(b)):
                 cv2.arrowedLine(img, pt(a), pt(b), colour, 3, tipLength=0.15)
     hc = px(head)[0]
     if np.all(np.isfinite(hc)):
         cv2.drawMarker(img, pt(hc), YELLOW, cv2.MARKER_CROSS, 18, 3)
     lines = [(f"{fr['id'][i]}  objects {len(xyz)}", (255, 255, 255)), ("head box", GREEN), ("t_object", YELLOW),
-             ("view prior v", BLUE), (gaze_label, RED), ("objects: warm near, cool far", (255, 255, 255))]
+             ("view prior v", BLUE), (gaze_label, RED)] + ([] if pred is None else [(pred_label, ORANGE)])
+    lines.append(("objects: warm near, cool far", (255, 255, 255)))
     panel_w = 12 + max(cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0] for t, _ in lines)
     region = img[4:10 + 20 * len(lines), 4:4 + panel_w]
     region[...] = (0.35 * region).astype(np.uint8)  # darken behind the legend

@@ -1,5 +1,5 @@
-"""PNG figures of a run: training curves, angular-error CDFs, the ablation bar chart (matplotlib,
-Agg backend; nothing is shown on screen)."""
+"""PNG figures of a run: training curves, angular-error CDFs, per-scene bars, the ablation bar chart
+(matplotlib, Agg backend; nothing is shown on screen). The paper's qualitative figures: figures.py."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -53,6 +53,29 @@ def plot_cdf(errors: dict[str, np.ndarray], path: str | Path, title: str = "") -
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_per_scene(methods: dict[str, dict[str, Any]], labels: dict[str, str], path: str | Path) -> Path:
+    """Bars of the 3D MAE per scene (and over all frames), one bar per method: `methods` is an
+    evaluation's {key: summarize(...)}, `labels` {key: legend label} (evaluate.METHODS)."""
+    plt = _pyplot()
+    first = next(iter(methods.values()))
+    scenes = list(first["per_scene"])
+    ticks = [f"{s}\n({first['per_scene'][s]['n']} frames)" for s in scenes] + [f"all\n({first['n']} frames)"]
+    x, width = np.arange(len(ticks)), 0.8 / len(methods)
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.3 * len(ticks) * len(methods) + 2), 4), dpi=110)
+    for k, (key, m) in enumerate(methods.items()):
+        mae = [m["per_scene"][s]["mae3d"] for s in scenes] + [m["mae3d"]]
+        ax.bar(x - 0.4 + (k + 0.5) * width, mae, width, label=labels.get(key, key))
+    tilt = len(ticks) > 6
+    ax.set_xticks(x, ticks, rotation=30 if tilt else 0, ha="right" if tilt else "center", fontsize=8)
+    ax.set_ylabel("3D MAE (degrees, lower is better)")
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1))
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
