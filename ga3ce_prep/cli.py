@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("ga3ce_prep.train.cli:train", "Train the GA3CE 3D gaze transformer on a store."),
     "eval": ("ga3ce_prep.train.cli:evaluate", "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
     "ablate": ("ga3ce_prep.train.cli:ablate", "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
+    "report": ("ga3ce_prep.train.cli:report",
+               "One HTML page of a trained run: curves, error CDF, per-scene and ablation bars, the paper's figures."),
     "predict": ("ga3ce_prep.predict:predict",
                 "Run the stages (and a checkpoint) on one RGB(-D) frame: v, g, objects; a drawing."),
     "models": ("ga3ce_prep.registry_models:models",

@@ -1,4 +1,4 @@
-"""`ga3ce-prep train`, `ga3ce-prep eval` and `ga3ce-prep ablate`.
+"""`ga3ce-prep train`, `ga3ce-prep eval`, `ga3ce-prep ablate` and `ga3ce-prep report`.
 
 The training options of train and ablate are made from `TrainConfig`'s fields (name, type, default,
 and the field's comment as help); `train --ablation` and `ablate --rows` read `ABLATIONS`.
@@ -22,6 +22,7 @@ from ..store import open_store
 from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
 from .evaluate import evaluate as run_eval, format_eval_table
 from .profiles import PROFILES, DatasetProfile
+from .report import report as run_report
 from .trainer import TrainConfig, train as run_train
 
 NOT_RECIPE = ("store", "out", "model")  # each command's own options; the model: --model-set (and train's choices)
@@ -192,3 +193,26 @@ def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
                          seeds=seed_list, split=split, force=force)
     click.echo(summary["table"])
     click.echo(f"\nbar chart: {summary['png']}\ntable: {out}/ablation.json, {out}/ablation.csv")
+
+
+@click.command()
+@click.argument("run_dir")
+@click.option("--store", default=None, help="The store to evaluate and draw on; default: the one RUN_DIR/config.json names.")
+@click.option("--split", default="test", show_default=True, help="Split to evaluate and draw frames from.")
+@click.option("--out", default=None, help="Folder of the page (index.html) and its PNGs; default: RUN_DIR/report.")
+@click.option("--frames", default=8, show_default=True, help="Frames in the qualitative grid and the attention figure.")
+@click.option("--data", default=None, help="The dataset folder with the frames' images; default: the one the store records.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the model.")
+@click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
+def report(run_dir, store, split, out, frames, data, device, threads):
+    """One HTML page of a trained run: evaluation, curves, error CDF, per-scene and ablation bars, figures.
+
+    \b
+    RUN_DIR: a run folder of `ga3ce-prep train` (config.json, history.csv, best.pt), or a folder of
+    `ga3ce-prep ablate` (its full row is shown). An ablation.json in RUN_DIR adds the ablation bars.
+    Every image is embedded in the page (and written beside it as a PNG).
+    Example: ga3ce-prep report runs/full && chromium runs/full/report/index.html
+    """
+    _log_setup()
+    page = run_report(run_dir, store=store, split=split, out=out, frames=frames, data=data, device=device, threads=threads)
+    click.echo(f"report: {page}")
