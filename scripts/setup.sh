@@ -1,20 +1,24 @@
 #!/usr/bin/env bash
-# Set up ga3ce-prep on a fresh machine: the system library Open3D needs, a virtual environment in
-# .venv (reused when present), the CPU build of torch, and the package with its test extras.
+# Set up ga3ce-prep on a fresh machine: the system packages (libusb for Open3D, chromium for the
+# report's browser test), a virtual environment in .venv (reused when present), the CPU build of
+# torch, and the package with its test extras.
 set -euo pipefail
 VENV=${VENV:-.venv}
 PYTHON=${PYTHON:-python3}
 
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
-  echo "[setup] installing libusb-1.0 (Open3D needs it)"
+# apt_install PACKAGE WHY: install a Debian package (as root, or with sudo), or say how and stop.
+apt_install() {
+  echo "[setup] installing $1 ($2)"
   if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo"; else
-    echo "[setup] libusb-1.0 is missing and this user cannot install it: run" >&2
-    echo "        apt-get update && apt-get install -y libusb-1.0-0   (as root)" >&2
+    echo "[setup] $1 is missing and this user cannot install it: run" >&2
+    echo "        apt-get update && apt-get install -y $1   (as root)" >&2
     exit 1
   fi
   $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
-fi
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$1" >/dev/null
+}
+ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || apt_install libusb-1.0-0 "Open3D needs it"
+command -v chromium >/dev/null || apt_install chromium "tests/test_report.py renders the report page in headless chromium"
 
 if [ ! -x "$VENV/bin/python" ]; then
   echo "[setup] creating $VENV"
