@@ -98,7 +98,7 @@ def plot_qualitative_grid(store: ContextStore, fr: FigureFrames, path: str | Pat
                           refs: dict | None = None, cols: int = 4) -> Path:
     """The qualitative grid (module docstring); refs: frame id -> FrameRef for the images."""
     refs = refs or {}
-    plt, fig, axes = _panels(len(fr.rows), min(cols, len(fr.rows)), (4.2, 3.6))
+    plt, fig, axes = _panels(len(fr.rows), min(cols, len(fr.rows)), (4.2, 3.9))
     ids = store.frames["id"]
     for ax, i, g, e, ev in zip(axes, fr.rows, fr.pred, fr.error, fr.prior_error):
         img = draw_png(store, int(i), refs.get(ids[i]), arrow_m=ARROW_M, gaze_label="ground truth", pred=g)
@@ -115,7 +115,7 @@ def plot_attention(store: ContextStore, fr: FigureFrames, path: str | Path, refs
     if fr.attention is None:
         raise ValueError("these frames have no attention (a model without context, the appearance-only row)")
     refs = refs or {}
-    plt, fig, axes = _panels(len(fr.rows), min(cols, len(fr.rows)), (4.2, 3.6))
+    plt, fig, axes = _panels(len(fr.rows), min(cols, len(fr.rows)), (4.2, 3.9))
     f, ids = store.frames, store.frames["id"]
     masked = np.where(fr.mask, fr.attention, np.nan)
     with np.errstate(all="ignore"):
