@@ -220,3 +220,40 @@ def test_model_gradient_finite_through_whole_model():
         m.zero_grad()
         angular_loss(m(view, pose.float(), head, objects, mask), target).backward()
         assert all(torch.isfinite(p.grad).all() for p in m.parameters() if p.grad is not None)
+
+
+SMALL = dict(num_encoder_layers=1, num_decoder_layers=2, dim_feedforward=128, head_hidden=128)
+
+
+@pytest.mark.parametrize("cfg", [ModelConfig(**SMALL), ModelConfig(cone_bias=False, rotation="none", **SMALL),
+                                 ModelConfig(use_objects=False, **SMALL)])
+@pytest.mark.parametrize("grad", [False, True])
+def test_attention_hook_leaves_outputs_identical(cfg, grad):
+    torch.manual_seed(0)
+    m = GA3CE(cfg).eval()
+    view, pose, head, objects, mask = _scene(B=5, S=8)
+    mask[2] = False                                                      # a frame without objects
+    x = (view, pose.float(), head, objects, mask)
+    with torch.set_grad_enabled(grad):
+        g = m(*x)
+        g_hooked, w = m.cross_attention(*x)
+        g_after = m(*x)
+    assert torch.equal(g, g_hooked) and torch.equal(g, g_after)       # bit-identical, and the hooks are gone
+    S = 8 if cfg.use_objects else 0
+    assert w.shape == (5, cfg.num_decoder_layers, cfg.n_heads, 1 + S)
+    torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[:-1]), atol=1e-6, rtol=0)   # sums to 1 over [null, objects]
+    assert (w >= 0).all()
+    if S:
+        assert (w[..., 1:].permute(0, 3, 1, 2)[~mask] == 0).all()                          # padding gets nothing
+        torch.testing.assert_close(w[2, ..., 0], torch.ones(w.shape[1:3]))                  # no objects: the null token
+    else:
+        assert (w == 1).all()
+
+
+def test_attention_hook_refuses_training_mode_and_appearance_only():
+    view, pose, head, objects, mask = _scene()
+    x = (view, pose.float(), head, objects, mask)
+    with pytest.raises(RuntimeError, match="eval mode"):
+        GA3CE(ModelConfig(**SMALL)).train().cross_attention(*x)
+    with pytest.raises(ValueError, match="no attention"):
+        GA3CE(ModelConfig(use_context=False)).eval().cross_attention(*x)
