@@ -204,7 +204,8 @@ def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
 @click.option("--data", default=None, help="The dataset folder with the frames' images; default: the one the store records.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the model.")
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
-def report(run_dir, store, split, out, frames, data, device, threads):
+@click.option("--force", is_flag=True, help="Report on a store other than the one the checkpoint was trained on.")
+def report(run_dir, store, split, out, frames, data, device, threads, force):
     """One HTML page of a trained run: evaluation, curves, error CDF, per-scene and ablation bars, figures.
 
     \b
@@ -214,5 +215,6 @@ def report(run_dir, store, split, out, frames, data, device, threads):
     Example: ga3ce-prep report runs/full && chromium runs/full/report/index.html
     """
     _log_setup()
-    page = run_report(run_dir, store=store, split=split, out=out, frames=frames, data=data, device=device, threads=threads)
+    page = run_report(run_dir, store=store, split=split, out=out, frames=frames, data=data, device=device,
+                      threads=threads, force=force)
     click.echo(f"report: {page}")

@@ -91,12 +91,14 @@ table{border-collapse:collapse}td{padding:.15em .8em .15em 0;vertical-align:top}
 
 
 def report(run_dir: str | Path, store: str | Path | None = None, split: str = "test", out: str | Path | None = None,
-           frames: int = 8, data: str | Path | None = None, device: str = "cpu", threads: int = 2) -> Path:
+           frames: int = 8, data: str | Path | None = None, device: str = "cpu", threads: int = 2,
+           force: bool = False) -> Path:
     """Write the report page of RUN_DIR (module docstring); returns OUT/index.html.
 
     store: the store to evaluate and draw on (default: the one RUN_DIR's config.json names).
     frames: frames in the qualitative grid and the attention figure. data: the dataset folder
     holding the frames' images (default: the one the store records; grey canvases without it).
+    force: report on a store other than the one the checkpoint was trained on (as `eval --force`).
     """
     run, ablation = find_run(run_dir)
     config = json.loads((run / "config.json").read_text())
@@ -111,7 +113,7 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
     out.mkdir(parents=True, exist_ok=True)
 
     checkpoint = run / "best.pt"
-    result = evaluate(st, checkpoint, split=split, device=device, cdf_path=out / "cdf.png",
+    result = evaluate(st, checkpoint, split=split, force=force, device=device, cdf_path=out / "cdf.png",
                       json_path=out / "eval.json", threads=threads)
     history = read_history(run / "history.csv")
     ckpt = load_checkpoint(checkpoint)
