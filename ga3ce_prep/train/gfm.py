@@ -20,8 +20,8 @@ plain mean over frames (GFIE's batch-size-weighted means of batch means are the 
   refined direction (a zero vector when the chosen pixel has no depth: 90 degrees).
 
 Where GFIE's code has no answer we say so: a 2D target left of or above the image (x < 0 or y < 0)
-gets no AUC (GFIE's `roc_auc_score` raises with no positive pixel for x < 0, and a y < 0 wraps
-around to the bottom rows through numpy's negative indexing); the cosine is clipped to [-1, 1]
+gets no AUC (GFIE's `roc_auc_score` raises with no positive pixel for x < 0, and a y < 0 gives row
+int(y H), which numpy counts from the bottom when negative); the cosine is clipped to [-1, 1]
 before arccos (GFIE's unclipped arccos gives NaN when rounding takes it past 1).
 """
 from __future__ import annotations
