@@ -13,6 +13,7 @@ MeshLab, CloudCompare or Open3D's viewer.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
@@ -38,29 +39,31 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
     raise StoreError(f"frame {frame_id!r} is not in {store.path}{why}; e.g. {near or store.frames['id'][:3].tolist()}")
 
 
-def find_frame_refs(store: ContextStore, frame_ids: list[str], data: str | Path | None = None) -> dict[str, FrameRef]:
-    """The dataset's FrameRefs of frame_ids found in it (re-opens the dataset the store was made
-    from, or `data`, once); empty if the dataset cannot be opened."""
+def find_frame_refs(store: ContextStore, frame_ids: Iterable[str], data: str | Path | None = None) -> dict[str, FrameRef]:
+    """id -> the dataset's FrameRef for each of frame_ids the dataset has, re-opening the dataset
+    the store was made from (its provenance: format, root, options) or the one at `data`; one pass
+    over the adapter's frames, stopping once every id is found. Raises what opening the dataset
+    raises (Ga3ceError, KeyError for an unknown format, OSError)."""
     from .datasets import open_dataset
 
     ds = store.attrs.get("dataset", {})
-    root = data or ds.get("root")
-    wanted, found = set(frame_ids), {}
-    try:
-        adapter = open_dataset(ds.get("name", ""), root, **(ds.get("options") or {}))
-        for f in adapter.frames():
-            if f.id in wanted:
-                found[f.id] = f
-                if len(found) == len(wanted):
-                    break
-    except (Ga3ceError, KeyError, OSError, TypeError):
-        return {}
-    return found
+    adapter = open_dataset(ds.get("name", ""), data or ds.get("root"), **(ds.get("options") or {}))
+    wanted, out = set(frame_ids), {}
+    for f in adapter.frames():
+        if f.id in wanted:
+            out[f.id] = f
+            if len(out) == len(wanted):
+                break
+    return out
 
 
 def find_frame_ref(store: ContextStore, frame_id: str, data: str | Path | None = None) -> FrameRef | None:
-    """The dataset's FrameRef for frame_id (find_frame_refs), or None."""
-    return find_frame_refs(store, [frame_id], data).get(frame_id)
+    """The dataset's FrameRef for frame_id (`find_frame_refs`), or None if the dataset cannot be
+    opened or has no such frame."""
+    try:
+        return find_frame_refs(store, [frame_id], data).get(frame_id)
+    except (Ga3ceError, KeyError, OSError, TypeError):
+        return None
 
 
 def _ray(p0: np.ndarray, d: np.ndarray, length: float) -> np.ndarray:

@@ -16,6 +16,7 @@ from onnx import TensorProto, helper
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
 from ga3ce_prep.estimators.cli import export_gfie_view
 from ga3ce_prep.estimators.gfie_head import GFIEHeadEstimator, GFIEHeadNet, load_gfie_head
+from ga3ce_prep.estimators.gfie_net import load_gfie_net
 from ga3ce_prep.estimators.head_crop import CropParams, expand_box, head_crop, head_input
 from ga3ce_prep.estimators.head_onnx import HeadOnnxEstimator, HeadOnnxOptions
 from ga3ce_prep.estimators.resnet import ResNet50
@@ -32,14 +33,20 @@ RGB_NORMALISED = np.array([(200 / 255 - 0.485) / 0.229, (100 / 255 - 0.456) / 0.
 
 
 @pytest.fixture(scope="module")
-def gfie_net() -> GFIEHeadNet:
+def gfie_full():
+    """GFIE's whole network, random: the checkpoints hold all of it, as GFIE's does."""
     return random_gfie_net()
 
 
 @pytest.fixture(scope="module")
-def ckpt_path(gfie_net, tmp_path_factory):
+def gfie_net(gfie_full) -> GFIEHeadNet:
+    return gfie_full.egd_module
+
+
+@pytest.fixture(scope="module")
+def ckpt_path(gfie_full, tmp_path_factory):
     path = tmp_path_factory.mktemp("gfie") / "gfiemodel.pt.tar"
-    torch.save(gfie_checkpoint(gfie_state(gfie_net)), path)
+    torch.save(gfie_checkpoint(gfie_state(gfie_full)), path)
     return path
 
 
@@ -95,36 +102,54 @@ def test_gfie_checkpoint_loads_strictly_and_matches_the_model_in_memory(gfie_net
         assert not torch.allclose(GFIEHeadNet().eval()(x), gfie_net(x), atol=1e-3)
 
 
-def _refused(tmp_path, state: dict, name: str = "bad.pth.tar") -> str:
+def _refused(tmp_path, state: dict, name: str = "bad.pth.tar", load=load_gfie_head) -> str:
     path = tmp_path / name
     torch.save(gfie_checkpoint(state), path)
     with pytest.raises(ModelFileError) as e:
-        load_gfie_head(path)
+        load(path)
     assert str(path) in str(e.value)
     return str(e.value)
 
 
-def test_a_renamed_key_is_refused_naming_it(gfie_net, tmp_path):
-    state = gfie_state(gfie_net)
+def test_a_renamed_key_is_refused_naming_it(gfie_full, tmp_path):
+    state = gfie_state(gfie_full)
     state["egd_module.fc.3.weight"] = state.pop("egd_module.fc.2.weight")
     msg = _refused(tmp_path, state)
     assert "missing keys: egd_module.fc.2.weight" in msg and "unexpected keys: egd_module.fc.3.weight" in msg
 
 
-def test_an_extra_key_is_refused_naming_it(gfie_net, tmp_path):
-    msg = _refused(tmp_path, {**gfie_state(gfie_net), "egd_module.backbone.8.weight": torch.zeros(1)})
+def test_an_extra_key_is_refused_naming_it(gfie_full, tmp_path):
+    msg = _refused(tmp_path, {**gfie_state(gfie_full), "egd_module.backbone.8.weight": torch.zeros(1)})
     assert "unexpected keys: egd_module.backbone.8.weight" in msg and "missing" not in msg
-    msg = _refused(tmp_path, {**gfie_state(gfie_net), "scene_branch.weight": torch.zeros(1)})
+    msg = _refused(tmp_path, {**gfie_state(gfie_full), "scene_branch.weight": torch.zeros(1)})
     assert "unexpected keys: scene_branch.weight" in msg
 
 
-def test_a_misshapen_tensor_and_a_dataparallel_prefix_are_refused(gfie_net, tmp_path):
-    state = gfie_state(gfie_net)
+def test_a_misshapen_tensor_and_a_dataparallel_prefix_are_refused(gfie_full, tmp_path):
+    state = gfie_state(gfie_full)
     state["egd_module.fc.2.weight"] = torch.zeros(2, 256)
     assert "wrong shapes: egd_module.fc.2.weight (2, 256) (expected (3, 256))" in _refused(tmp_path, state)
-    msg = _refused(tmp_path, {"module." + k: v for k, v in gfie_state(gfie_net).items()})
+    msg = _refused(tmp_path, {"module." + k: v for k, v in gfie_state(gfie_full).items()})
     assert "missing keys: egd_module.backbone.0.weight" in msg and "(and 317 more)" in msg
     assert "unexpected keys: module.egd_module.backbone.0.weight" in msg and "DataParallel" in msg
+
+
+def test_a_renamed_or_missing_heatmap_key_is_refused_naming_it(gfie_full, tmp_path):
+    state = gfie_state(gfie_full)
+    state["ggh_module.decoder.conv5.weight"] = state.pop("ggh_module.decoder.conv4.weight")
+    msg = _refused(tmp_path, state, load=load_gfie_net)
+    assert "missing keys: ggh_module.decoder.conv4.weight" in msg
+    assert "unexpected keys: ggh_module.decoder.conv5.weight" in msg
+    state = gfie_state(gfie_full)
+    state["ggh_module.encoder.conv1.weight"] = torch.zeros(64, 3, 7, 7)  # a plain ResNet's conv1
+    msg = _refused(tmp_path, state, load=load_gfie_net)
+    assert "wrong shapes: ggh_module.encoder.conv1.weight (64, 3, 7, 7) (expected (64, 6, 7, 7))" in msg
+    head_only = {k: v for k, v in gfie_state(gfie_full).items() if k.startswith("egd_module.")}
+    msg = _refused(tmp_path, head_only, load=load_gfie_net)
+    assert "missing keys: ggh_module.encoder.conv1.weight" in msg and "(and 348 more)" in msg
+    path = tmp_path / "head_only.pth.tar"
+    torch.save(gfie_checkpoint(head_only), path)
+    load_gfie_head(path)  # enough for v
 
 
 def _with_numpy1_names(obj) -> bytes:

@@ -12,8 +12,8 @@ and "optimizer". The head network's keys in it are `egd_module.` + ours, e.g.
 `egd_module.backbone.4.0.conv1.weight`, `egd_module.fc.2.bias`: GFIENet names the branch
 `egd_module`, and GFIE never wraps the model in DataParallel (main.py, utils/model_utils.py), so
 there is no `module.` prefix; its inference.py loads the file strictly into a plain GFIENet. The
-other branch with weights, `ggh_module.` (the heatmap generator), is left unread; any other key,
-a missing one or one of another shape refuses the file.
+other branch with weights, `ggh_module.` (the heatmap generator, estimators/gfie_net.py), is left
+unread; any other key, a missing one or one of another shape refuses the file.
 
 Output convention: GFIE trains the vector against normalize(gaze_XYZ - eye_XYZ), the 3D points
 of its annotations in the RGB camera frame whose pinhole back-projection is X = (u - cx) Z / fx,
@@ -68,28 +68,31 @@ def _names(keys: list[str], most: int = 5) -> str:
     return ", ".join(keys[:most]) + (f" (and {len(keys) - most} more)" if len(keys) > most else "")
 
 
-def egd_state_dict(state: Mapping[str, Any], path: str | Path) -> dict[str, torch.Tensor]:
-    """The head network's weights from a GFIENet state dict, keys without `PREFIX`; ModelFileError
-    naming the file and the missing, unexpected and misshapen keys."""
-    expected = {PREFIX + k: v.shape for k, v in GFIEHeadNet().state_dict().items()}
+def matched_state(state: Mapping[str, Any], net: nn.Module, path: str | Path, prefix: str = "",
+                  ignore: tuple[str, ...] = (), what: str = "GFIE's network") -> dict[str, torch.Tensor]:
+    """`net`'s weights from a GFIENet state dict, strictly: every key prefix + (a key of net) there
+    with net's shape, every other key starting with one of `ignore`; returned without the prefix.
+    ModelFileError naming the file, `what` and the missing, unexpected and misshapen keys."""
+    expected = {prefix + k: v.shape for k, v in net.state_dict().items()}
     missing = [k for k in expected if k not in state]
-    extra = [k for k in state if k not in expected and not k.startswith(OTHER_BRANCHES)]
+    extra = [k for k in state if k not in expected and not k.startswith(ignore)]
     wrong = [f"{k} {tuple(getattr(state[k], 'shape', ()))} (expected {tuple(s)})" for k, s in expected.items()
              if k in state and (not torch.is_tensor(state[k]) or state[k].shape != s)]
-    problems = [f"{what}: {_names(keys)}" for what, keys in
+    problems = [f"{kind}: {_names(keys)}" for kind, keys in
                 (("missing keys", missing), ("unexpected keys", extra), ("wrong shapes", wrong)) if keys]
     if problems:
         hint = (" (saved from nn.DataParallel? GFIE's own checkpoints have no 'module.' prefix)"
                 if any(k.startswith("module.") for k in state) else "")
-        raise ModelFileError(f"GFIE checkpoint {path} does not hold GFIE's head network ({PREFIX}*): "
-                             + "; ".join(problems) + hint)
-    return {k[len(PREFIX):]: state[k] for k in expected}
+        raise ModelFileError(f"GFIE checkpoint {path} does not hold {what}: " + "; ".join(problems) + hint)
+    return {k[len(prefix):]: state[k] for k in expected}
 
 
-def load_gfie_head(path: str | Path) -> GFIEHeadNet:
-    """GFIEHeadNet (eval mode, CPU) with the weights of GFIE's checkpoint at `path`, read with
-    weights_only=True (numpy scalars allowed, nothing else runs) and memory-mapped so the rest of
-    the file (the heatmap branch, the optimiser) is not read. ModelFileError naming the file."""
+def load_gfie_weights(path: str | Path, net: nn.Module, prefix: str = "", ignore: tuple[str, ...] = (),
+                      what: str = "GFIE's network") -> nn.Module:
+    """`net` (eval mode, CPU) with its weights from GFIE's checkpoint at `path` (`matched_state`),
+    read with weights_only=True (numpy scalars allowed, nothing else runs) and memory-mapped so the
+    tensors not asked for (the optimiser, an ignored branch) are not read. ModelFileError naming
+    the file."""
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"GFIE checkpoint not found: {path}")
@@ -103,9 +106,14 @@ def load_gfie_head(path: str | Path) -> GFIEHeadNet:
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), Mapping):
         raise ModelFileError(f"{path} is not a GFIE checkpoint: expected a dict with a 'state_dict' "
                              "(GFIE's save_checkpoint, e.g. its released gfiemodel.pt.tar)")
-    net = GFIEHeadNet()
-    net.load_state_dict(egd_state_dict(ckpt["state_dict"], path))
+    net.load_state_dict(matched_state(ckpt["state_dict"], net, path, prefix, ignore, what))
     return net.eval()
+
+
+def load_gfie_head(path: str | Path) -> GFIEHeadNet:
+    """GFIEHeadNet with the `egd_module.*` weights of GFIE's checkpoint at `path`; the heatmap
+    branch's keys (`ggh_module.*`) are allowed and not read (`load_gfie_weights`)."""
+    return load_gfie_weights(path, GFIEHeadNet(), PREFIX, OTHER_BRANCHES, f"GFIE's head network ({PREFIX}*)")
 
 
 class GFIEHeadEstimator:
@@ -147,5 +155,5 @@ def export_onnx(checkpoint: str | Path, out: str | Path, opset: int = 17) -> Pat
     return out
 
 
-__all__ = ["OTHER_BRANCHES", "PREFIX", "GFIEHeadEstimator", "GFIEHeadNet", "egd_state_dict", "export_onnx",
-           "load_gfie_head"]
+__all__ = ["OTHER_BRANCHES", "PREFIX", "GFIEHeadEstimator", "GFIEHeadNet", "export_onnx", "load_gfie_head",
+           "load_gfie_weights", "matched_state"]

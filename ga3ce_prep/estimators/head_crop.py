@@ -68,11 +68,17 @@ def head_crop(rgb: np.ndarray, box: np.ndarray, p: CropParams = CropParams()) ->
 def head_input(rgb: np.ndarray, box: np.ndarray, p: CropParams = CropParams()) -> np.ndarray:
     """The network input for one head: (1, 3, S, S) ("nchw") or (1, S, S, 3) ("nhwc") float32,
     (pixel / 255 - mean) / std in `p.channels` order."""
-    x = head_crop(rgb, box, p).astype(np.float32) / np.float32(255)
+    return network_input(head_crop(rgb, box, p), p)
+
+
+def network_input(image: np.ndarray, p: CropParams = CropParams()) -> np.ndarray:
+    """Step 4 on an (S, S, 3) uint8 RGB image: (1, 3, S, S) ("nchw") or (1, S, S, 3) ("nhwc")
+    float32, (pixel / 255 - mean) / std in `p.channels` order."""
+    x = image.astype(np.float32) / np.float32(255)
     if p.channels == "bgr":
         x = x[..., ::-1]
     x = (x - np.asarray(p.mean, np.float32)) / np.asarray(p.std, np.float32)
     return np.ascontiguousarray(x.transpose(2, 0, 1) if p.layout == "nchw" else x)[None]
 
 
-__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "CropParams", "expand_box", "head_crop", "head_input"]
+__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "CropParams", "expand_box", "head_crop", "head_input", "network_input"]

@@ -4,7 +4,7 @@ folder that `pipelines/gfie.yaml`, `cad120.yaml` and `gafa.yaml` run end to end 
 Each model's output is a known function of its input, so a test can check what the pipeline did:
 - MobileSAM: `scripted.pooling_encoder` + `scripted.scripted_decoder` on a quadrant label image;
 - MeTRAbs-family crop model (`Constant`): fixed joints in the crop camera, millimetres;
-- GFIE's head network: random weights saved as GFIE saves its checkpoint;
+- GFIE's network (head branch and GFM): random weights saved as GFIE saves its checkpoint;
 - metric monocular depth (`linear_depth_model`): depth = a * channel 0 + b, any input size;
 - GAFA's view network: `scripted.centroid_gazenet`.
 """
@@ -58,12 +58,12 @@ class Constant(torch.nn.Module):
 
 
 def random_gfie_net(seed: int = 0):
-    """GFIE's head network with random weights and random BN statistics (so a load that skipped
-    any tensor would change the output)."""
-    from ..estimators.gfie_head import GFIEHeadNet
+    """GFIE's whole network (`estimators/gfie_net.py::GFIENet`) with random weights and random BN
+    statistics (so a load that skipped any tensor would change the output)."""
+    from ..estimators.gfie_net import GFIENet
 
     torch.manual_seed(seed)
-    net = GFIEHeadNet()
+    net = GFIENet()
     for m in net.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.1, 0.1)
@@ -73,12 +73,8 @@ def random_gfie_net(seed: int = 0):
 
 
 def gfie_state(net) -> dict:
-    """The state dict of GFIE's whole network as its checkpoint holds it: the head branch under
-    `egd_module.` and two tensors of the heatmap branch."""
-    from ..estimators.gfie_head import PREFIX
-
-    return {**{PREFIX + k: v for k, v in net.state_dict().items()},
-            "ggh_module.encoder.conv1.weight": torch.randn(64, 6, 7, 7), "ggh_module.decoder.conv4.bias": torch.zeros(1)}
+    """The state dict of GFIE's whole network as its checkpoint holds it (GFIE's key names)."""
+    return dict(net.state_dict())
 
 
 def gfie_checkpoint(state: dict) -> dict:

@@ -150,17 +150,25 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
 @click.option("--no-scenes", is_flag=True, help="Leave out the per-scene table.")
 @click.option("--force", is_flag=True, help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset).")
-def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_size, threads, no_scenes, force):
+@click.option("--gfm", "gfm", default=None, metavar="CHECKPOINT",
+              help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns (AUC, L2, 3D distance, 3D angle) "
+              "for GFIE, Ours and Ours + GFM, from the frames' images and depth (GFIE or CAD-120 stores).")
+@click.option("--data", default=None, help="With --gfm: the dataset's root, if not where the store was made from.")
+@click.option("--gfm-batch-size", default=16, show_default=True, help="With --gfm: frames per pass of GFIE's network.")
+def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_size, threads, no_scenes, force, gfm,
+             data, gfm_batch_size):
     """Evaluate a checkpoint: 3D/2D MAE, front/back, per scene, and the baselines on the same frames.
 
     \b
     Baselines: the view prior v, the head direction from the pose keypoints, and v snapped to the
     nearest object within a cone. The table says whether the model beats each of them.
+    With --gfm, GFIE's gaze-following network adds GFIE's Table 1 (docs/training.md, "GFIE's
+    gaze-following modules").
     """
     _log_setup()
     r = run_eval(store, checkpoint, split=split, force=force, device=device, batch_size=batch_size,
                  snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
-                 threads=threads)
+                 threads=threads, gfm=gfm, data=data, gfm_batch_size=gfm_batch_size)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
     if "cdf_png" in r:
         click.echo(f"\nCDF plot: {r['cdf_png']}")

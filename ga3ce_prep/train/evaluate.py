@@ -24,6 +24,7 @@ from ..store import ContextStore, open_store
 from .baselines import choose_snap_cone, snap_to_object
 from .checkpoint import build_model, check_checkpoint, load_checkpoint
 from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
+from .gfm import evaluate_gfm, format_gfm_table
 from .metrics import summarize
 from .plots import plot_cdf
 
@@ -56,15 +57,18 @@ def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
 def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: str = "test",
              force: bool = False, device: str = "cpu", batch_size: int = 256,
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
-             json_path: str | Path | None = None, threads: int = 2) -> dict[str, Any]:
+             json_path: str | Path | None = None, threads: int = 2, gfm: str | Path | None = None,
+             data: str | Path | None = None, gfm_batch_size: int = 16) -> dict[str, Any]:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store (e.g. cross-dataset).
     snap_cone_deg: the snap baseline's cone; None chooses it on the validation split (else 15).
     cdf_path: PNG of the angular-error CDFs ("auto": eval_<split>_cdf.png beside the checkpoint;
-    None: no plot). json_path: also write the result as JSON. Returns a dict: store, split,
-    checkpoint, epoch, n_frames, snap_cone_deg, methods {name: summarize(...)}, beats {baseline:
-    bool}, ratio_to_prior, cdf_png.
+    None: no plot). json_path: also write the result as JSON. gfm: GFIE's checkpoint, to add GFIE's
+    Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth, from the dataset
+    the store was made from or the one at `data`, gfm_batch_size frames per pass). Returns a dict:
+    store, split, checkpoint, epoch, n_frames, snap_cone_deg, methods {name: summarize(...)}, beats
+    {baseline: bool}, ratio_to_prior, cdf_png, and gfm (`evaluate_gfm`) when asked.
     """
     torch.set_num_threads(threads)
     st = store if isinstance(store, ContextStore) else open_store(store)
@@ -99,6 +103,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         "beats": {k: bool(model_mae < m["mae3d"]) for k, m in methods.items() if k != "model"},
         "ratio_to_prior": model_mae / methods["view_prior"]["mae3d"],
     }
+    if gfm is not None:
+        result["gfm"] = evaluate_gfm(st, ds.rows, preds["model"], gfm, data, device, gfm_batch_size)
     if cdf_path is not None:
         path = Path(checkpoint).with_name(f"eval_{split}_cdf.png") if cdf_path == "auto" else Path(cdf_path)
         errors = {METHODS["model"]: angular_error_deg(preds["model"], ds.gaze),
@@ -138,4 +144,6 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
         for name, r in m["model"]["per_scene"].items():
             row = [m[k]["per_scene"][name]["mae3d"] for k in ("view_prior", "head_from_pose", "snap_to_object")]
             lines.append(f"{name[:24]:24s} {r['n']:>7d} {_f(r['mae3d']):>7s} " + " ".join(f"{_f(x):>7s}" for x in row))
+    if "gfm" in result:
+        lines += ["", format_gfm_table(result["gfm"])]
     return "\n".join(lines)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import Ga3ceError
 from ..geometry import angular_error_deg, normalize, project
 from ..model import GA3CE
 from ..model.egocentric import egocentric_transform
@@ -199,7 +200,10 @@ def make_figures(model: GA3CE, ds: ContextDataset, out: str | Path, n: int = 8, 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     fr = figure_frames(model, ds, n, n_max, device)
-    refs = find_frame_refs(ds.store, ds.store.frames["id"][fr.rows].tolist(), data)
+    try:  # the images are optional: without the dataset the panels are drawn on grey
+        refs = find_frame_refs(ds.store, ds.store.frames["id"][fr.rows].tolist(), data)
+    except (Ga3ceError, KeyError, OSError, TypeError):
+        refs = {}
     paths = {"qualitative": plot_qualitative_grid(ds.store, fr, out / "qualitative.png", refs)}
     if fr.attention is not None:
         paths["attention"] = plot_attention(ds.store, fr, out / "attention.png", refs)
