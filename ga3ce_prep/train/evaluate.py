@@ -67,7 +67,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     bool}, ratio_to_prior, cdf_png.
     """
     torch.set_num_threads(threads)
-    st = store if isinstance(store, ContextStore) else open_store(store)
+    st = store if isinstance(store, ContextStore) else open_store(store, verify=True)
     ckpt = load_checkpoint(checkpoint)
     problems = check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None, force=force)
     for p in problems:
