@@ -5,8 +5,10 @@ import os
 import re
 import shutil
 import signal
+import struct
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import h5py
@@ -390,3 +392,45 @@ def test_two_runs_on_one_output_with_different_work_directories_the_second_is_re
     _run(synth_world, out, work_dir=tmp_path / "work2")  # released: runs
     assert open_store(out, verify=True)
 
+
+def _flip_data_bit(entry: Path) -> None:
+    """Flip a bit in the last data byte of the largest array of an .npz cache entry."""
+    with zipfile.ZipFile(entry) as z:
+        info = max(z.infolist(), key=lambda i: i.file_size)
+    raw = bytearray(entry.read_bytes())
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26:info.header_offset + 30])
+    at = info.header_offset + 30 + name_len + extra_len + info.compress_size - 1
+    raw[at] ^= 0x01
+    entry.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("damage", ["flipped bit", "truncated"])
+def test_damaged_cache_entries_are_recomputed_in_the_same_rerun(synth_world, reference, tmp_path, damage, caplog):
+    out, work = tmp_path / "s.zarr", tmp_path / "work"
+    _run(synth_world, out, work_dir=work)
+    shutil.rmtree(out)  # so that the rerun must finalize from the cache
+    cache = work / "cache"
+    spoil = _flip_data_bit if damage == "flipped bit" else lambda p: p.write_bytes(p.read_bytes()[:200])
+    for entry in (cache / "input").glob("*/*.npz"):  # read by the view tasks below
+        spoil(entry)
+    for entry in (cache / "view").glob("*/*.npz"):   # so the view tasks run
+        entry.unlink()
+    spoil(sorted((cache / "objects").glob("*/*.npz"))[0])  # read by finalize only
+    summary = _run(synth_world, out, work_dir=work)
+    assert summary.store_written
+    assert {s: summary.computed_shards[s] for s in STAGES} == {
+        "input": 4, "depth": 0, "objects": 1, "head": 0, "pose": 0, "view": 4}
+    assert_same_store(out, reference[0])
+    assert sum("is damaged" in r.getMessage() for r in caplog.records) == 5
+
+
+def test_a_rerun_repairs_a_damaged_store(synth_world, reference, tmp_path):
+    out = tmp_path / "s.zarr"
+    _run(synth_world, out)
+    (out / "frames/pose/c/0/0/0").unlink()
+    with pytest.raises(StoreError, match=r"array frames/pose, chunk \(0, 0, 0\) \(rows 0-11\): missing"):
+        open_store(out, verify=True)
+    summary = _run(synth_world, out)
+    assert summary.store_written
+    assert sum(summary.computed_shards.values()) == 0
+    assert_same_store(out, reference[0])

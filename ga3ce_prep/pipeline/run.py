@@ -12,6 +12,8 @@ Order of a run (nothing is computed before every check has passed):
    identity of every neighbour it reads);
 4. `execute`: run the missing stage tasks on dask (graph.py, tasks.py), one progress bar per task kind;
 5. `finalize`: write the store from the cache (finalize.py); `_summarize` returns a RunSummary.
+   Cache entries found damaged on the way (`Cache.load` removes them) are computed again and
+   finalize runs again, in the same run (`REPAIR_PASSES`).
 
 The work directory (default `<out>.work/`) holds the lock, the cache and finalize's scratch; keep it
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
@@ -19,6 +21,7 @@ to make later runs with changed parameters recompute only what changed, or delet
 from __future__ import annotations
 
 import itertools
+import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -33,13 +36,16 @@ from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION, validate_store_attrs
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
-from .finalize import FinalizeCounts, finalize
+from .finalize import FinalizeCounts, LostEntries, finalize
 from .graph import execute
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
 FINALIZE_VERSION = "2"  # 2: attrs["summary"] holds FinalizeCounts under its field names
+REPAIR_PASSES = 3  # execute + finalize rounds: damaged entries found by finalize are computed in the next
 ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")  # a directory holding one of these is a Zarr store (v3, v2)
+
+log = logging.getLogger("ga3ce_prep.pipeline")
 
 
 @dataclass
@@ -150,14 +156,26 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
-        reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
-        t_fin = time.perf_counter()
         view = conf.stages["view"]
         view_sources = backend_class("view", view.backend).sources or (view.backend,)
-        counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                   view_sources, progress=progress)
-        fin_seconds = time.perf_counter() - t_fin
+        reports: list[StageReport] = []
+        compute_seconds = fin_seconds = 0.0
+        for attempt in range(1, REPAIR_PASSES + 1):
+            done, seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
+            reports, compute_seconds = reports + done, compute_seconds + seconds
+            t_fin = time.perf_counter()
+            try:
+                counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
+                                           view_sources, progress=progress)
+                break
+            except LostEntries as e:
+                if attempt == REPAIR_PASSES:
+                    raise StoreError(f"{e}; they were computed again {attempt - 1} times and are still unreadable: "
+                                     f"check the disk of {cache.root}") from None
+                log.warning("%s: computing them again", e)
+            finally:
+                fin_seconds += time.perf_counter() - t_fin
     return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
                       finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
 
