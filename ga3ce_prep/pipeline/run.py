@@ -233,8 +233,9 @@ def _other_store(out: Path, conf: PipelineConfig, data_root: Path) -> str | None
     pipe, ds = attrs["pipeline"].get("name", attrs["pipeline"]["file"]), attrs["dataset"]
     if pipe == conf.name and (ds["name"], ds["root"]) == (conf.dataset_format, str(data_root)):
         return None
-    frames = (attrs.get("summary") or {}).get("frames_kept", "?")
-    return (f"the ga3ce-prep store of pipeline {pipe!r} on the {ds['name']} dataset at {ds['root']} ({frames} frames, "
+    kept = (attrs.get("summary") or {}).get("frames_kept")
+    frames = "" if kept is None else f"{kept} frames, "
+    return (f"the ga3ce-prep store of pipeline {pipe!r} on the {ds['name']} dataset at {ds['root']} ({frames}"
             f"schema {attrs['schema_version']}), not this run's pipeline {conf.name!r} on the "
             f"{conf.dataset_format} dataset at {data_root}")
 
