@@ -90,8 +90,9 @@ class StoreWriter:
 
     `append_frames(frames, objects)` takes dicts of arrays with the schema's names; `obj_start`
     is filled in by the writer from `obj_count`. Rows are buffered to whole chunks, so memory
-    stays bounded whatever the dataset size. `close(attrs)` writes the remaining rows and the
-    root attributes (validated against schemas/store.schema.json).
+    stays bounded whatever the dataset size. `close(attrs)` writes the remaining rows, then the
+    root attributes (validated against schemas/store.schema.json) with the integrity record of
+    every file written.
     """
 
     def __init__(self, path: str | Path, split_names: tuple[str, ...] = SPLITS,
@@ -177,8 +178,8 @@ class StoreWriter:
         self.root.attrs.update(attrs)
 
 
-def _fs(path: str):
-    """(fsspec filesystem, absolute root) of a local path or an fsspec URL."""
+def _fs(path: str) -> tuple[Any, str]:
+    """(fsspec filesystem, root path in it) of a local path or an fsspec URL."""
     from fsspec.core import url_to_fs
 
     return url_to_fs(path)

@@ -29,6 +29,7 @@ from .faults import fault
 
 log = logging.getLogger("ga3ce_prep.pipeline")
 
+
 def _canon(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {str(k): _canon(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
