@@ -11,14 +11,17 @@ Layout (N frames, M objects, F failure records)::
 
 `split` and `scene` are int codes; their names are in the array's attrs["names"]. Camera frame,
 metres, x right, y down, z forward. Unknown values are NaN. The root attrs hold `schema_version`,
-the dataset, the pipeline and its hash, per-stage provenance and the package version
-(schemas/store.schema.json). Arrays are chunked along the first axis only (Zstd).
+the dataset, the pipeline and its hash, per-stage provenance, the package version
+(schemas/store.schema.json) and the integrity record: the size and SHA-256 of every other file of
+the store, and a digest of the root attributes themselves (`verify_store` checks it). Arrays are
+chunked along the first axis only (Zstd).
 
 Write with `StoreWriter` (appends blocks, memory bounded by one chunk per array); read with
 `open_store`, which loads every array into memory (a few KB per frame) and needs no torch.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -33,8 +36,9 @@ from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
 
-# 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source
-SCHEMA_VERSION = "1.2"
+# 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source;
+# 1.3: attrs["integrity"]
+SCHEMA_VERSION = "1.3"
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
@@ -70,6 +74,8 @@ FAILURE_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {
 }
 GROUPS = {"frames": FRAME_ARRAYS, "objects": OBJECT_ARRAYS, "failures": FAILURE_ARRAYS}
 CHUNK_BYTES = 2 << 20
+REBUILD = ("rebuild the store by rerunning the `ga3ce-prep run` command that wrote it (its work directory's "
+           "cache makes that quick), or restore a copy")
 
 
 def _chunk_rows(dtype: Any, trailing: tuple[int, ...]) -> int:
@@ -84,8 +90,9 @@ class StoreWriter:
 
     `append_frames(frames, objects)` takes dicts of arrays with the schema's names; `obj_start`
     is filled in by the writer from `obj_count`. Rows are buffered to whole chunks, so memory
-    stays bounded whatever the dataset size. `close(attrs)` writes the remaining rows and the
-    root attributes (validated against schemas/store.schema.json).
+    stays bounded whatever the dataset size. `close(attrs)` writes the remaining rows, then the
+    root attributes (validated against schemas/store.schema.json) with the integrity record of
+    every file written.
     """
 
     def __init__(self, path: str | Path, split_names: tuple[str, ...] = SPLITS,
@@ -164,9 +171,119 @@ class StoreWriter:
             self._push(key, None, force=True)
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
         self.arrays["frames/view_source"].attrs["names"] = list(view_sources)
-        attrs = {**attrs, "schema_version": SCHEMA_VERSION}
+        attrs = json.loads(json.dumps({**attrs, "schema_version": SCHEMA_VERSION}))  # as they will read back
+        attrs["integrity"] = {"algorithm": "sha256", "files": file_digests(self.path)}
+        attrs["integrity"]["attributes"] = _attributes_digest(attrs)
         validate_store_attrs(attrs)
         self.root.attrs.update(attrs)
+
+
+def _fs(path: str) -> tuple[Any, str]:
+    """(fsspec filesystem, root path in it) of a local path or an fsspec URL."""
+    from fsspec.core import url_to_fs
+
+    return url_to_fs(path)
+
+
+def file_digests(path: str | Path) -> dict[str, list[Any]]:
+    """[size, SHA-256 hex] of every file of the store at `path` by its path in the store ("/"
+    separated), except the root zarr.json (which holds them) and hidden files."""
+    fs, root = _fs(str(path))
+    out: dict[str, list[Any]] = {}
+    for f in sorted(fs.find(root)):
+        rel = f[len(root):].lstrip("/")
+        if rel == "zarr.json" or any(part.startswith(".") for part in rel.split("/")):
+            continue
+        data = fs.cat_file(f)
+        out[rel] = [len(data), hashlib.sha256(data).hexdigest()]
+    return out
+
+
+def _attributes_digest(attrs: dict[str, Any]) -> str:
+    """SHA-256 of the root attributes' canonical JSON, leaving out attrs["integrity"]["attributes"]."""
+    record = {k: v for k, v in attrs.get("integrity", {}).items() if k != "attributes"}
+    body = json.dumps({**attrs, "integrity": record}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(body.encode()).hexdigest()
+
+
+def _open_root(path: str) -> tuple[zarr.Group, dict[str, Any]]:
+    """The store's root group and attributes; StoreError if there is none or its zarr.json is damaged."""
+    try:
+        root = zarr.open_group(path, mode="r")
+        return root, dict(root.attrs)
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as e:
+        raise StoreError(f"no store at {path}: run `ga3ce-prep run ... --out {path}` first") from e
+    except Exception as e:  # noqa: BLE001 - whatever a damaged zarr.json makes zarr raise
+        raise StoreError(f"{path}: the root metadata zarr.json is damaged ({type(e).__name__}: {e}); "
+                         f"{REBUILD}") from None
+
+
+def _chunk_name(fs: Any, root: str, rel: str) -> str:
+    """What a file of the store is: "array frames/pose, chunk (3, 0, 0) (rows 17475-23299)",
+    "array frames/pose, metadata (zarr.json)" or "group frames, metadata (zarr.json)"."""
+    parts = rel.split("/")
+    if parts[-1] == "zarr.json":
+        node = "/".join(parts[:-1])
+        return f"{'group' if node in GROUPS else 'array'} {node}, metadata ({rel})"
+    if "c" not in parts:
+        return f"file {rel}"
+    at = parts.index("c")
+    array, index = "/".join(parts[:at]), parts[at + 1:]
+    rows = ""
+    try:
+        meta = json.loads(fs.cat_file(f"{root}/{array}/zarr.json"))
+        n = int(meta["chunk_grid"]["configuration"]["chunk_shape"][0])
+        first = int(index[0]) * n
+        rows = f" (rows {first}-{min(first + n, int(meta['shape'][0])) - 1})"
+    except Exception:  # noqa: BLE001 - the array's metadata is damaged too: it is reported itself
+        pass
+    return f"array {array}, chunk ({', '.join(index)}{',' if len(index) == 1 else ''}){rows}"
+
+
+def store_problems(path: str | Path) -> list[str]:
+    """What differs between the store at `path` and its integrity record, one line per damaged file
+    naming the array and the chunk (empty: intact). StoreError when the root metadata cannot be read
+    or the store has no record."""
+    path = str(path)
+    _, attrs = _open_root(path)
+    record = attrs.get("integrity")
+    if not isinstance(record, dict) or not isinstance(record.get("files"), dict):
+        raise StoreError(f"{path} has no integrity record (schema {attrs.get('schema_version')}; the record came "
+                         f"with schema 1.3): it cannot be verified; rebuild it with this ga3ce-prep "
+                         "(`ga3ce-prep run`, the same command) to give it one")
+    problems = []
+    if record.get("attributes") != _attributes_digest(attrs):
+        problems.append("root attributes (zarr.json): differ from their recorded SHA-256")
+    files: dict[str, list[Any]] = record["files"]
+    fs, root = _fs(path)
+    present = file_digests(path)
+    for rel in sorted(set(files) | set(present)):
+        want, got = files.get(rel), present.get(rel)
+        if want == got:
+            continue
+        if want is None:
+            what = "not in the integrity record (a file added after finalize)"
+        elif got is None:
+            what = "missing (it would read back as fill values)"
+        elif got[0] != want[0]:
+            what = f"{got[0]} bytes instead of {want[0]} ({'truncated' if got[0] < want[0] else 'grown'})"
+        else:
+            what = "its bytes differ from the recorded SHA-256 (changed in place)"
+        problems.append(f"{_chunk_name(fs, root, rel)}: {what}")
+    return problems
+
+
+def verify_store(path: str | Path) -> None:
+    """Check every file of the store at `path` against its integrity record (`store_problems`);
+    StoreError naming each damaged array and chunk, and the fix."""
+    problems = store_problems(path)
+    if problems:
+        raise _damaged(str(path), problems)
+
+
+def _damaged(path: str, problems: list[str]) -> StoreError:
+    shown = "; ".join(problems[:10]) + (f"; ... {len(problems) - 10} more" if len(problems) > 10 else "")
+    return StoreError(f"{path} is damaged: {shown}; {REBUILD}")
 
 
 def validate_store_attrs(attrs: dict[str, Any]) -> None:
@@ -231,15 +348,13 @@ class ContextStore:
         return xyz, area, np.cumsum(new_count) - new_count, new_count
 
 
-def open_store(path: str | Path) -> ContextStore:
-    """Load a store into memory as numpy arrays. Raises StoreError if it is missing, unfinished
-    or of another major schema version."""
+def open_store(path: str | Path, verify: bool = False) -> ContextStore:
+    """Load a store into memory as numpy arrays. Raises StoreError if it is missing, unfinished,
+    of another major schema version, or damaged: with `verify`, any file that differs from the
+    integrity record (`verify_store`, naming the array and the chunk); without, a file that cannot
+    be read (its array, and its chunk when the record can tell)."""
     path = str(path)
-    try:
-        root = zarr.open_group(path, mode="r")
-    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as e:
-        raise StoreError(f"no store at {path}: run `ga3ce-prep run ... --out {path}` first") from e
-    attrs = dict(root.attrs)
+    root, attrs = _open_root(path)
     version = attrs.get("schema_version")
     if version is None:
         raise StoreError(f"{path} has no schema_version: it is not a finished ga3ce-prep store "
@@ -248,11 +363,32 @@ def open_store(path: str | Path) -> ContextStore:
         raise StoreError(f"{path} has store schema {version}; this ga3ce-prep reads {SCHEMA_VERSION}. "
                          "Rebuild the store with this version (`ga3ce-prep run`) or install the "
                          "ga3ce-prep release that wrote it")
-    groups: dict[str, dict[str, np.ndarray]] = {}
-    for gname in GROUPS:
-        g = root[gname]
-        groups[gname] = {name: np.asarray(g[name][...]) for name in g.array_keys()}
+    if verify:
+        verify_store(path)
+    groups: dict[str, dict[str, np.ndarray]] = {g: {} for g in GROUPS}
+    key = ""
+    try:
+        for gname in GROUPS:
+            key = gname
+            g = root[gname]
+            for name in g.array_keys():
+                key = f"{gname}/{name}"
+                groups[gname][name] = np.asarray(g[name][...])
+        key = "frames/split"
+        split_names = list(root["frames/split"].attrs.get("names", SPLITS))
+        key = "frames/scene"
+        scene_names = list(root["frames/scene"].attrs.get("names", []))
+    except Exception as e:  # noqa: BLE001 - whatever a damaged chunk or zarr.json makes zarr raise
+        raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
-                        failures=groups["failures"],
-                        split_names=list(root["frames/split"].attrs.get("names", SPLITS)),
-                        scene_names=list(root["frames/scene"].attrs.get("names", [])))
+                        failures=groups["failures"], split_names=split_names, scene_names=scene_names)
+
+
+def _unreadable(path: str, key: str, error: Exception) -> StoreError:
+    """The error for a store whose `key` cannot be read: the damaged files by the integrity record
+    when it has one, else the array and zarr's error."""
+    try:
+        problems = store_problems(path)
+    except StoreError:
+        problems = []
+    return _damaged(path, problems or [f"{key} cannot be read ({type(error).__name__}: {error})"])

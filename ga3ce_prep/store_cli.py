@@ -1,6 +1,6 @@
 """The store commands `info`, `show`, `export` (registered in ga3ce_prep/cli.py), and `info`'s text:
 what a store holds (splits, scenes, frames, object-count histogram, ground truth present,
-provenance, failures)."""
+provenance, failures, integrity record)."""
 from __future__ import annotations
 
 import json
@@ -19,8 +19,8 @@ def _bar(n: int, peak: int, width: int = 30) -> str:
     return "#" * (int(round(width * n / peak)) if peak else 0)
 
 
-def describe_store(s: ContextStore, max_failures: int = 8) -> str:
-    """`ga3ce-prep info`'s text for an opened store."""
+def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = False) -> str:
+    """`ga3ce-prep info`'s text for an opened store (verified: it was opened with verify=True)."""
     fr, a = s.frames, s.attrs
     n = len(s)
     lines = [f"store        {s.path}",
@@ -69,6 +69,11 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
             lines.append(f"  - {f['frame_id'][k]} [{f['stage'][k]}] {f['message'][k]}")
         if nf > max_failures:
             lines.append(f"  ... {nf - max_failures} more (read them with open_store(path).failures)")
+    files = (a.get("integrity") or {}).get("files") or {}
+    size = sum(f[0] for f in files.values()) / 1e6
+    lines.append(f"integrity    {len(files)} files ({size:.1f} MB): every one matches its SHA-256" if verified else
+                 f"integrity    {len(files)} files ({size:.1f} MB) recorded; check them with --verify" if files else
+                 "integrity    no record (a store of schema < 1.3)")
     return "\n".join(lines)
 
 
@@ -77,10 +82,13 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
 @click.option("--failures", "max_failures", type=int, default=8, show_default=True,
               help="How many failure messages to list.")
 @click.option("--json", "as_json", is_flag=True, help="Print the root attributes (provenance, summary) as JSON instead.")
-def info(store, max_failures, as_json):
+@click.option("--verify", is_flag=True,
+              help="First check every file against the store's integrity record (SHA-256); a damaged store is an "
+                   "error naming each damaged array and chunk.")
+def info(store, max_failures, as_json, verify):
     """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures."""
-    s = open_store(store)
-    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures))
+    s = open_store(store, verify=verify)
+    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures, verified=verify))
 
 
 @click.command("show")

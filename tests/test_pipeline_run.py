@@ -2,15 +2,19 @@
 recomputation, the lock, sharding/worker invariance, bad inputs, and the store commands info/show/export."""
 import csv
 import os
+import re
 import shutil
 import signal
+import struct
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+import zarr
 from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
@@ -317,3 +321,116 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
     res = r.invoke(cli, ["show", str(out), "no/such/frame", "--out", str(png)])
     assert res.exit_code != 0
     assert "not in" in str(res.exception)
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    """Every file under root, by relative path, with its bytes."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_foreign_zarr_store_at_out_is_refused_untouched_and_replaced_only_with_overwrite(synth_world, reference,
+                                                                                          tmp_path):
+    out = tmp_path / "theirs.zarr"
+    g = zarr.open_group(str(out), mode="w")
+    g.attrs["owner"] = "another project"
+    g.create_array("x", data=np.arange(10))
+    before = _tree(out)
+    with pytest.raises(StoreError, match=r"holds a Zarr store that ga3ce-prep did not write \(root attributes: owner;"
+                                         r".*to replace it pass --overwrite, to keep it choose another --out"):
+        _run(synth_world, out)
+    assert _tree(out) == before
+    assert not Path(f"{out}.work").exists() and not Path(f"{out}.lock").exists()  # refused before anything
+
+    args = ["run", "-p", PIPE, "-d", str(synth_world), "-o", str(out), "-q", "--overwrite"]
+    res = CliRunner().invoke(cli, args + [a for o in (*SMALL, *SHARD) for a in ("--set", o)])
+    assert res.exit_code == 0, res.output
+    assert not (out / "x").exists()
+    assert_same_store(out, reference[0])
+
+    mine = tmp_path / "notes"  # not a Zarr store: refused even with --overwrite
+    mine.mkdir()
+    (mine / "a.txt").write_text("mine")
+    with pytest.raises(StoreError, match="exists and is not a Zarr store"):
+        _run(synth_world, mine, overwrite=True)
+    assert _tree(mine) == {"a.txt": b"mine"}
+
+
+def test_a_store_of_another_pipeline_or_dataset_is_refused_untouched_unless_overwrite(synth_world, reference, tmp_path):
+    other = tmp_path / "world2"
+    shutil.copytree(synth_world, other)
+    out = tmp_path / "s.zarr"
+    shutil.copytree(reference[0], out)  # pipeline synthetic on synth_world
+    before = _tree(out)
+    theirs = f"the ga3ce-prep store of pipeline 'synthetic' on the gfie dataset at {synth_world} (12 frames, schema "
+    with pytest.raises(StoreError, match=re.escape(theirs) + r".*not this run's pipeline 'synthetic' on the gfie "
+                                         rf"dataset at {re.escape(str(other))}; to replace it pass --overwrite"):
+        _run(other, out)
+    with pytest.raises(StoreError, match=re.escape(theirs) + r".*not this run's pipeline 'synthetic-oracle'"):
+        run_pipeline("synthetic-oracle", synth_world, out, overrides=SHARD, progress=False)
+    assert _tree(out) == before
+    _run(synth_world, out)  # the same pipeline and dataset: ours to replace (here: already up to date)
+    assert _tree(out) == before
+    summary = _run(other, out, overwrite=True)
+    assert summary.store_written
+    assert open_store(out, verify=True).attrs["dataset"]["root"] == str(other)
+
+
+def test_two_runs_on_one_output_with_different_work_directories_the_second_is_refused(synth_world, tmp_path):
+    out, work1 = tmp_path / "s.zarr", tmp_path / "work1"
+    first = subprocess.Popen([sys.executable, "-c", "import sys; from ga3ce_prep.pipeline.lock import RunLock\n"
+                              f"with RunLock({str(work1)!r}, {str(out)!r}):\n print('held', flush=True); sys.stdin.read()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert first.stdout.readline().strip() == "held"
+        with pytest.raises(StoreError, match=rf"another ga3ce-prep run is writing {re.escape(str(out))} \(pid "
+                                             rf"{first.pid} on .*, work directory {re.escape(str(work1))}, started .*\) "
+                                             rf"and holds {re.escape(str(out))}.lock"):
+            _run(synth_world, out, work_dir=tmp_path / "work2")
+        assert not out.exists() and not (tmp_path / "work2" / "cache").exists()
+    finally:
+        first.communicate("", timeout=60)
+    _run(synth_world, out, work_dir=tmp_path / "work2")  # released: runs
+    assert open_store(out, verify=True)
+
+
+def _flip_data_bit(entry: Path) -> None:
+    """Flip a bit in the last data byte of the largest array of an .npz cache entry."""
+    with zipfile.ZipFile(entry) as z:
+        info = max(z.infolist(), key=lambda i: i.file_size)
+    raw = bytearray(entry.read_bytes())
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26:info.header_offset + 30])
+    at = info.header_offset + 30 + name_len + extra_len + info.compress_size - 1
+    raw[at] ^= 0x01
+    entry.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("damage", ["flipped bit", "truncated"])
+def test_damaged_cache_entries_are_recomputed_in_the_same_rerun(synth_world, reference, tmp_path, damage, caplog):
+    out, work = tmp_path / "s.zarr", tmp_path / "work"
+    _run(synth_world, out, work_dir=work)
+    shutil.rmtree(out)  # so that the rerun must finalize from the cache
+    cache = work / "cache"
+    spoil = _flip_data_bit if damage == "flipped bit" else lambda p: p.write_bytes(p.read_bytes()[:200])
+    for entry in (cache / "input").glob("*/*.npz"):  # read by the view tasks below
+        spoil(entry)
+    for entry in (cache / "view").glob("*/*.npz"):   # so the view tasks run
+        entry.unlink()
+    spoil(sorted((cache / "objects").glob("*/*.npz"))[0])  # read by finalize only
+    summary = _run(synth_world, out, work_dir=work)
+    assert summary.store_written
+    assert {s: summary.computed_shards[s] for s in STAGES} == {
+        "input": 4, "depth": 0, "objects": 1, "head": 0, "pose": 0, "view": 4}
+    assert_same_store(out, reference[0])
+    assert sum("is damaged" in r.getMessage() for r in caplog.records) == 5
+
+
+def test_a_rerun_repairs_a_damaged_store(synth_world, reference, tmp_path):
+    out = tmp_path / "s.zarr"
+    _run(synth_world, out)
+    (out / "frames/pose/c/0/0/0").unlink()
+    with pytest.raises(StoreError, match=r"array frames/pose, chunk \(0, 0, 0\) \(rows 0-11\): missing"):
+        open_store(out, verify=True)
+    summary = _run(synth_world, out)
+    assert summary.store_written
+    assert sum(summary.computed_shards.values()) == 0
+    assert_same_store(out, reference[0])

@@ -1,3 +1,7 @@
+import re
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import zarr
@@ -78,3 +82,86 @@ def test_empty_blocks_are_accepted(tmp_path):
     s = open_store(tmp_path / "s.zarr")
     assert len(s) == 3
     np.testing.assert_array_equal(s.frames["obj_start"], np.concatenate([[0], np.cumsum(f["obj_count"])[:-1]]))
+
+
+def _small_store(path):
+    w = StoreWriter(path, scene_names=["s"])
+    w.append_frames(*_block(np.random.default_rng(2), 20, 0))
+    w.append_failures({"frame_id": ["f3"], "stage": ["head"], "error": ["FrameError"],
+                       "message": ["no valid depth"], "action": ["dropped"]})
+    w.close(ATTRS)
+    return path
+
+
+def _flip(b: bytes) -> bytes:
+    return b[:len(b) // 2] + bytes([b[len(b) // 2] ^ 0x10]) + b[len(b) // 2 + 1:]
+
+
+def _retitle(b: bytes) -> bytes:  # valid JSON, one attribute changed
+    return b.replace(b'"p.yaml"', b'"q.yaml"')
+
+
+# damage -> (file in the store, what is done to its bytes (None: deleted), the message expected)
+DAMAGE = {
+    "deleted chunk": ("frames/pose/c/0/0/0", None, r"array frames/pose, chunk \(0, 0, 0\) \(rows 0-19\): missing"),
+    "flipped bit": ("frames/head_pos/c/0/0", _flip,
+                    r"array frames/head_pos, chunk \(0, 0\) \(rows 0-19\): its bytes differ from the recorded SHA-256"),
+    "truncated chunk": ("objects/xyz/c/0/0", lambda b: b[:9], r"array objects/xyz, chunk \(0, 0\) \(rows 0-\d+\): "
+                        r"9 bytes instead of \d+ \(truncated\)"),
+    "damaged array metadata": ("frames/view/zarr.json", _flip, r"array frames/view, metadata \(frames/view/zarr.json\)"),
+    "damaged root metadata": ("zarr.json", lambda b: b[:40], "the root metadata zarr.json is damaged"),
+    "edited root attributes": ("zarr.json", _retitle, r"root attributes \(zarr.json\): differ from their recorded"),
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGE)
+def test_integrity_record_names_the_damaged_array_and_chunk(tmp_path, damage):
+    from click.testing import CliRunner
+
+    from ga3ce_prep.cli import cli
+
+    path = _small_store(tmp_path / "s.zarr")
+    ok = CliRunner().invoke(cli, ["info", "--verify", str(path)])
+    assert ok.exit_code == 0, ok.output
+    assert "every one matches its SHA-256" in ok.output
+    intact = open_store(path, verify=True)
+    rel, how, message = DAMAGE[damage]
+    f = path / rel
+    if how is None:
+        f.unlink()
+    else:
+        f.write_bytes(how(f.read_bytes()))
+    with pytest.raises(StoreError, match=message):
+        open_store(path, verify=True)
+    res = CliRunner().invoke(cli, ["info", "--verify", str(path)])
+    assert res.exit_code != 0
+    assert isinstance(res.exception, StoreError)
+    assert re.search(message, str(res.exception))
+    assert "rerunning the `ga3ce-prep run` command" in str(res.exception)
+    if damage == "deleted chunk":  # what --verify is for: without it the chunk reads back as zeros
+        assert (open_store(path).frames["pose"] == 0).all()
+        assert not (intact.frames["pose"] == 0).all()
+
+
+@pytest.mark.parametrize("rel", ["objects/xyz/c/0/0", "zarr.json"])
+def test_a_truncated_chunk_or_root_metadata_is_one_error_line_without_verify(tmp_path, rel):
+    path = _small_store(tmp_path / "s.zarr")
+    f = path / rel
+    f.write_bytes(f.read_bytes()[:9])
+    p = subprocess.run([sys.executable, "-m", "ga3ce_prep.cli", "info", str(path)], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), p.stderr
+    assert ("array objects/xyz, chunk (0, 0)" if rel != "zarr.json" else "root metadata zarr.json is damaged") in lines[0]
+
+
+def test_a_store_without_an_integrity_record_cannot_be_verified(tmp_path):
+    path = _small_store(tmp_path / "s.zarr")
+    g = zarr.open_group(str(path), mode="r+")
+    attrs = dict(g.attrs)
+    del attrs["integrity"]
+    g.attrs.put(attrs)
+    assert len(open_store(path)) == 20
+    with pytest.raises(StoreError, match="has no integrity record"):
+        open_store(path, verify=True)

@@ -7,13 +7,16 @@ data files' identity, and its upstream keys (the input stage's key hashes the sh
 their files' identity: path, size, modification time). So a changed parameter changes that
 stage's key and its dependents' keys only; everything else is found again. An entry is written to
 a temporary file in the same directory, fsynced and renamed into place (then the directory is
-fsynced), so a killed run never leaves a half-written entry under a real key; an unreadable entry
-(e.g. a full disk) is treated as missing and recomputed.
+fsynced), so a killed run never leaves a half-written entry under a real key. An entry that cannot
+be read back whole (a torn or truncated file, a flipped bit: each member's CRC-32 is checked) is
+removed with a warning and so computed again, in the same run (graph.py, run.py).
 """
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import logging
 import os
 import tempfile
 import zipfile
@@ -23,6 +26,8 @@ from typing import Any
 import numpy as np
 
 from .faults import fault
+
+log = logging.getLogger("ga3ce_prep.pipeline")
 
 
 def _canon(obj: Any) -> Any:
@@ -105,14 +110,20 @@ class Cache:
         return self.path(stage, key).is_file()
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
-        """The entry's arrays, or None if it is missing or unreadable (then it is removed)."""
+        """The entry's arrays, or None if it is missing or damaged (then it is removed)."""
         p = self.path(stage, key)
         try:
-            with np.load(p, allow_pickle=False) as z:
+            data = p.read_bytes()
+            with zipfile.ZipFile(io.BytesIO(data)) as z:
+                bad = z.testzip()
+            if bad is not None:
+                raise zipfile.BadZipFile(f"bad CRC-32 for {bad}")
+            with np.load(io.BytesIO(data), allow_pickle=False) as z:
                 return {k: z[k] for k in z.files}
         except FileNotFoundError:
             return None
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        except Exception as e:  # noqa: BLE001 - whatever a damaged file makes zipfile or numpy raise
+            log.warning("cache entry %s is damaged (%s: %s): removed, it is computed again", p, type(e).__name__, e)
             p.unlink(missing_ok=True)
             return None
 

@@ -14,7 +14,12 @@ import click
                    "cad120, gafa, folder.")
 @click.option("--data", "-d", required=True, type=click.Path(file_okay=False),
               help="Dataset root, in the format the pipeline's dataset.format names.")
-@click.option("--out", "-o", required=True, help="Output store (a directory, e.g. out/gfie.zarr).")
+@click.option("--out", "-o", required=True,
+              help="Output store (a directory, e.g. out/gfie.zarr). An existing ga3ce-prep store of the same pipeline "
+                   "and dataset is replaced; anything else is refused (see --overwrite).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace a Zarr store at --out that ga3ce-prep did not write, or that another pipeline or dataset "
+                   "made. Anything at --out that is not a Zarr store is refused even so.")
 @click.option("--workers", "-j", type=int, default=None,
               help="Run on a local dask cluster of N single-threaded worker processes. Default: the local "
                    "threaded scheduler.")
@@ -25,7 +30,8 @@ import click
               help="Frames per shard (the unit of caching and of tasks). Default: the pipeline's run.shard_size.")
 @click.option("--limit", type=int, default=None, help="Process only the first N frames (in the dataset's order).")
 @click.option("--work", type=click.Path(file_okay=False), default=None,
-              help="Work directory for the lock, the stage cache and finalize's scratch. Default: <out>.work")
+              help="Work directory for its lock, the stage cache and finalize's scratch. Default: <out>.work (the "
+                   "output's own lock is <out>.lock)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
 @click.option("--models", "-m", type=click.Path(file_okay=False), default=None,
@@ -33,11 +39,12 @@ import click
 @click.option("--summary-json", type=click.Path(dir_okay=False), default=None,
               help="Also write the run summary as JSON to this file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overrides, models, summary_json, quiet):
+def run(pipeline, data, out, overwrite, workers, scheduler, shard_size, limit, work, overrides, models, summary_json,
+        quiet):
     """Preprocess a dataset into a 3D context store (staged, cached, resumable).
 
-    Every check (pipeline schema, backends, model and data files, dataset layout, the output's lock)
-    runs before any work. Stages run on dask over shards of frames; each stage's output per shard is
+    Every check (pipeline schema, backends, model and data files, dataset layout, what is at --out,
+    the locks on the work directory and the output) runs before any work. Stages run on dask over shards of frames; each stage's output per shard is
     cached atomically, so a killed run resumes where it stopped when you rerun the same command, and
     a changed parameter recomputes only that stage and the stages after it.
 
@@ -48,7 +55,8 @@ def run(pipeline, data, out, workers, scheduler, shard_size, limit, work, overri
     from .run import run_pipeline
 
     s = run_pipeline(pipeline, data, out, workers=workers, scheduler=scheduler, shard_size=shard_size,
-                     limit=limit, work_dir=work, overrides=list(overrides), models=models, progress=not quiet)
+                     limit=limit, work_dir=work, overrides=list(overrides), models=models, overwrite=overwrite,
+                     progress=not quiet)
     click.echo(s.format())
     if summary_json:
         Path(summary_json).write_text(json.dumps(s.as_dict(), indent=2))

@@ -3,8 +3,11 @@
 The store is written to `<work>/partial.zarr` shard by shard (memory: one shard's entries plus
 the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store, if
 any, is moved aside first and removed after). A run killed during finalize leaves no half store
-under `--out`; the next run writes it again from the cache. If `--out` already holds a store of
-the same run key (same frames, stages, parameters and inputs), finalize does nothing.
+under `--out`; the next run writes it again from the cache. If `--out` already holds an intact
+store (`store.store_problems`) of the same run key (same frames, stages, parameters and inputs),
+finalize does nothing. A cache entry that is missing or damaged (`Cache.load` removes it) stops
+finalize with `LostEntries` once every shard has been looked at: the run computes them again and
+finalizes again (run.py).
 
 Which frames are kept (docs/pipeline.md): a failure of input, depth, head or view drops the frame;
 a failure of objects keeps it with zero objects; a failure of pose keeps it with a NaN pose.
@@ -12,6 +15,7 @@ Every failure is a `failures/*` record (frame id, stage, error class, message, a
 """
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from collections import Counter
@@ -24,10 +28,22 @@ import numpy as np
 from ..errors import StoreError
 from ..skeleton import N_JOINTS
 from ..stages import DROPS_FRAME, STAGES
-from ..store import StoreWriter
+from ..store import StoreWriter, store_problems
 from .cache import Cache
 from .faults import fault
 from .tasks import Shard
+
+log = logging.getLogger("ga3ce_prep.pipeline")
+
+
+class LostEntries(StoreError):
+    """Cache entries finalize needs are missing or were damaged (and removed): computing them
+    again repairs the cache."""
+
+    def __init__(self, lost: list[str]):
+        self.lost = lost
+        shown = ", ".join(lost[:4]) + (f" and {len(lost) - 4} more" if len(lost) > 4 else "")
+        super().__init__(f"{len(lost)} cache entries are missing or were damaged ({shown})")
 
 
 @dataclass
@@ -49,13 +65,14 @@ class FinalizeCounts:
         return self.frames_total - self.frames_kept
 
 
-def _entries(cache: Cache, shard: Shard) -> dict[str, dict[str, np.ndarray]]:
+def _entries(cache: Cache, shard: Shard, lost: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """The shard's entry of every stage; the missing or damaged ones are added to `lost` instead."""
     out = {}
     for stage in STAGES:
         e = cache.load(stage, shard.keys[stage])
         if e is None:
-            raise StoreError(f"cache entry for stage {stage} of shard {shard.index} is missing in {cache.root}; "
-                             "rerun the same command to compute it")
+            lost.append(f"{stage} of shard {shard.index}")
+            continue
         if e["ids"].tolist() != shard.ids.tolist():
             raise StoreError(f"cache entry {cache.path(stage, shard.keys[stage])} belongs to other frames; "
                              f"remove {cache.root} and rerun")
@@ -144,8 +161,12 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
         shutil.rmtree(partial)
     counts = FinalizeCounts()
     writer = StoreWriter(partial, overwrite=True)
+    lost: list[str] = []
     for shard in tqdm(shards, desc="finalize", unit="shard", disable=not progress, leave=False):
-        frames, objects, fails = shard_block(shard, _entries(cache, shard), counts)
+        entries = _entries(cache, shard, lost)
+        if lost:
+            continue  # only look for more: the store is written once every entry is there
+        frames, objects, fails = shard_block(shard, entries, counts)
         frames["split"] = np.array([_split_code(s) for s in frames["split"]], np.int8)
         frames["scene"] = np.array([writer.scene_code(s) for s in frames["scene"]], np.int32)
         writer.append_frames(frames, objects)
@@ -154,6 +175,8 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
             writer.append_failures({k: np.array(v, dtype=str) for k, v in
                                     zip(("frame_id", "stage", "error", "message", "action"), cols)})
         fault("finalize.shard")
+    if lost:
+        raise LostEntries(lost)
     counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
     attrs = {**attrs, "summary": asdict(counts), "run": {**attrs.get("run", {}), "key": run_key}}
     writer.close(attrs, view_sources)
@@ -181,7 +204,7 @@ def _split_code(split: str) -> int:
 
 
 def _finished_counts(out: Path, run_key: str) -> FinalizeCounts | None:
-    """The counts of the store at `out` if it is a finished store of this run key, else None."""
+    """The counts of the store at `out` if it is an intact finished store of this run key, else None."""
     try:
         import zarr
 
@@ -189,5 +212,12 @@ def _finished_counts(out: Path, run_key: str) -> FinalizeCounts | None:
     except Exception:  # noqa: BLE001 - no store, or not a store
         return None
     if (attrs.get("run") or {}).get("key") != run_key:
+        return None
+    try:
+        problems = store_problems(out)
+    except StoreError as e:  # no integrity record: a store of schema < 1.3 cannot have this run key
+        problems = [str(e)]
+    if problems:
+        log.warning("%s is damaged (%s): writing it again", out, "; ".join(problems[:3]))
         return None
     return FinalizeCounts(**attrs["summary"])

@@ -1,7 +1,8 @@
 """The dask graph over shards and its execution, with one progress bar per task kind.
 
-Per shard, only the tasks whose cache entries are missing enter the graph, as `dask.delayed`
-calls named `<kind>-<shard index>` (`tasks.task_stages`, `tasks.task_upstream`):
+Per shard, only the tasks whose cache entries are missing enter the graph (`kinds_to_run`: also
+those whose entries a task of the graph reads but are damaged), as `dask.delayed` calls named
+`<kind>-<shard index>` (`tasks.task_stages`, `tasks.task_upstream`):
 
     input-i --> geometry-i   depth, objects, head (and pose, when its backend reads the depth)
            \\-> pose-i
@@ -38,8 +39,9 @@ def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[
     cached = {k: 0 for k in kinds}
     for s in shards:
         made: dict[str, Delayed] = {}
-        for kind, stages in kinds.items():  # dependency order: a task's upstream tasks come first
-            if all(cache.has(st, s.keys[st]) for st in stages):
+        todo = kinds_to_run(cache, env.upstream, s)
+        for kind in kinds:  # dependency order: a task's upstream tasks come first
+            if kind not in todo:
                 cached[kind] += len(s.frames)
                 continue
             up = [made[k] for k in after[kind] if k in made]
@@ -52,6 +54,22 @@ def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[
                 made[kind] = delayed(stage_task)(env, kind, s, *up, dask_key_name=name)
             tasks.append(made[kind])
     return tasks, cached
+
+
+def kinds_to_run(cache: Cache, upstream: dict[str, tuple[str, ...]], shard: Shard) -> set[str]:
+    """The task kinds of `shard` to run: those with a missing entry, and those whose entries a task
+    to run reads but cannot (`Cache.load` removes a damaged entry, which is then computed in this run
+    instead of failing the task; the depth entry is the geometry task's own concern)."""
+    kinds = task_stages(upstream)
+    home = {st: k for k, stages in kinds.items() for st in stages}
+    todo = {k for k, stages in kinds.items() if not all(cache.has(st, shard.keys[st]) for st in stages)}
+    checked: set[str] = set()
+    while True:
+        read = {u for k in todo for st in kinds[k] for u in upstream[st]} - {"depth"} - checked
+        if not read:
+            return todo
+        checked |= read
+        todo |= {home[u] for u in read if cache.load(u, shard.keys[u]) is None}
 
 
 def _bar_label(kind: str, stages: tuple[str, ...]) -> str:

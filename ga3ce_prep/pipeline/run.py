@@ -2,15 +2,18 @@
 
 Order of a run (nothing is computed before every check has passed):
 1. `_checked_config`: load and validate the pipeline; check backends and model/data files
-   (config.py), the run options and the output path;
+   (config.py), the run options and what is at the output path (`_check_output`);
 2. `_open_frames`: open the dataset (structural errors stop here) and list its frames (`limit`:
    the first N);
-3. `_make_shards`: under the output's lock (lock.py), cut the frames into shards, give a windowed
+3. `_make_shards`: under the work directory's and the output's lock (lock.py; the output is
+   checked again there), cut the frames into shards, give a windowed
    backend's stage its frames' windows (`frames.frame_windows` over all the frames, so windows
    reach into neighbouring shards) and compute every cache key (a windowed stage's also hashes the
    identity of every neighbour it reads);
 4. `execute`: run the missing stage tasks on dask (graph.py, tasks.py), one progress bar per task kind;
 5. `finalize`: write the store from the cache (finalize.py); `_summarize` returns a RunSummary.
+   Cache entries found damaged on the way (`Cache.load` removes them) are computed again and
+   finalize runs again, in the same run (`REPAIR_PASSES`).
 
 The work directory (default `<out>.work/`) holds the lock, the cache and finalize's scratch; keep it
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
@@ -18,6 +21,7 @@ to make later runs with changed parameters recompute only what changed, or delet
 from __future__ import annotations
 
 import itertools
+import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -29,15 +33,19 @@ from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
-from ..store import SCHEMA_VERSION
+from ..store import SCHEMA_VERSION, validate_store_attrs
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
-from .finalize import FinalizeCounts, finalize
+from .finalize import FinalizeCounts, LostEntries, finalize
 from .graph import execute
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
 FINALIZE_VERSION = "2"  # 2: attrs["summary"] holds FinalizeCounts under its field names
+REPAIR_PASSES = 3  # execute + finalize rounds: damaged entries found by finalize are computed in the next
+ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")  # a directory holding one of these is a Zarr store (v3, v2)
+
+log = logging.getLogger("ga3ce_prep.pipeline")
 
 
 @dataclass
@@ -127,41 +135,57 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
                  workers: int | None = None, scheduler: str | None = None, shard_size: int | None = None,
                  limit: int | None = None, work_dir: str | Path | None = None,
                  overrides: list[str] | dict[str, Any] | None = None, models: str | Path | None = None,
-                 progress: bool = True) -> RunSummary:
+                 overwrite: bool = False, progress: bool = True) -> RunSummary:
     """Preprocess the dataset at `data` with `pipeline` into the store `out` (module docstring).
 
     pipeline: a pipeline file, a bundled name ("synthetic", "gfie", ...), or a parsed dict.
     workers: N worker processes (distributed.LocalCluster); scheduler: a dask scheduler address;
     neither: the local threaded scheduler. shard_size overrides run.shard_size; limit keeps the
-    first N frames; overrides: "stages.view.params.mean_error_deg=30"-style settings.
+    first N frames; overrides: "stages.view.params.mean_error_deg=30"-style settings; overwrite:
+    replace a store at `out` that is not ours or is of another pipeline or dataset (`_check_output`).
     Raises ConfigError / ModelFileError / DatasetFormatError / StoreError before any work.
     """
     t0 = time.perf_counter()
     data_root = Path(data).resolve()
-    conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models)
+    conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models, overwrite)
     frames = _open_frames(conf, data_root, limit)
     work = Path(work_dir) if work_dir else Path(f"{out_path}.work")
     with RunLock(work, str(out_path)):
+        _check_output(out_path, conf, data_root, overwrite)  # again: another run may have written it meanwhile
         cache = Cache(work / "cache")
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
-        reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
-        t_fin = time.perf_counter()
         view = conf.stages["view"]
         view_sources = backend_class("view", view.backend).sources or (view.backend,)
-        counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                   view_sources, progress=progress)
-        fin_seconds = time.perf_counter() - t_fin
+        reports: list[StageReport] = []
+        compute_seconds = fin_seconds = 0.0
+        for attempt in range(1, REPAIR_PASSES + 1):
+            done, seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
+            reports, compute_seconds = reports + done, compute_seconds + seconds
+            t_fin = time.perf_counter()
+            try:
+                counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
+                                           view_sources, progress=progress)
+                break
+            except LostEntries as e:
+                if attempt == REPAIR_PASSES:
+                    raise StoreError(f"{e}; they were computed again {attempt - 1} times and are still unreadable: "
+                                     f"check the disk of {cache.root}") from None
+                log.warning("%s: computing them again", e)
+            finally:
+                fin_seconds += time.perf_counter() - t_fin
     return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
                       finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
 
 
 def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
                     overrides: list[str] | dict[str, Any] | None, shard_size: int | None,
-                    workers: int | None, models: str | Path | None = None) -> tuple[PipelineConfig, Path]:
-    """The validated pipeline (run options applied) and the output's absolute path."""
+                    workers: int | None, models: str | Path | None = None,
+                    overwrite: bool = False) -> tuple[PipelineConfig, Path]:
+    """The validated pipeline (run options applied) and the output's absolute path, checked by
+    `_check_output`."""
     conf = load_pipeline(pipeline, data_root, overrides, models=models)
     if shard_size is not None:
         if shard_size < 1:
@@ -173,9 +197,47 @@ def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out:
         raise ConfigError(f"--out {out}: remote stores are not supported by `run` yet (finalize renames a "
                           "local directory into place); write locally and copy the store")
     out_path = Path(out).resolve()
-    if out_path.exists() and not (out_path / "zarr.json").is_file():
-        raise StoreError(f"--out {out_path} exists and is not a ga3ce-prep store; choose another path or remove it")
+    _check_output(out_path, conf, data_root, overwrite)
     return conf, out_path
+
+
+def _check_output(out: Path, conf: PipelineConfig, data_root: Path, overwrite: bool) -> None:
+    """Refuse to replace what a run must not: anything at `out` but a Zarr store; with `overwrite`
+    false, also a Zarr store that is not a ga3ce-prep store (root attributes valid against
+    schemas/store.schema.json), or one of another pipeline (name) or dataset (format and root).
+    StoreError saying what is there and how to proceed."""
+    if not out.exists():
+        return
+    if not any((out / m).is_file() for m in ZARR_MARKERS):
+        raise StoreError(f"--out {out} exists and is not a Zarr store: ga3ce-prep replaces only its own stores; "
+                         "choose another --out, or move it away yourself")
+    found = _other_store(out, conf, data_root)
+    if found and not overwrite:
+        raise StoreError(f"--out {out} holds {found}; to replace it pass --overwrite, to keep it choose another --out")
+
+
+def _other_store(out: Path, conf: PipelineConfig, data_root: Path) -> str | None:
+    """What the Zarr store at `out` is, when it is not a ga3ce-prep store of this pipeline and
+    dataset (None: it is, so a run may replace it)."""
+    import zarr
+
+    try:
+        attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+    except Exception as e:  # noqa: BLE001 - a damaged or unknown root: not known to be ours
+        return f"a Zarr store whose root metadata cannot be read ({type(e).__name__}: {e})"
+    try:
+        validate_store_attrs(attrs)
+    except StoreError as e:
+        keys = ", ".join(sorted(attrs)[:8]) or "none"
+        return f"a Zarr store that ga3ce-prep did not write (root attributes: {keys}; {e})"
+    pipe, ds = attrs["pipeline"].get("name", attrs["pipeline"]["file"]), attrs["dataset"]
+    if pipe == conf.name and (ds["name"], ds["root"]) == (conf.dataset_format, str(data_root)):
+        return None
+    kept = (attrs.get("summary") or {}).get("frames_kept")
+    frames = "" if kept is None else f"{kept} frames, "
+    return (f"the ga3ce-prep store of pipeline {pipe!r} on the {ds['name']} dataset at {ds['root']} ({frames}"
+            f"schema {attrs['schema_version']}), not this run's pipeline {conf.name!r} on the "
+            f"{conf.dataset_format} dataset at {data_root}")
 
 
 def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> list[FrameRef]:

@@ -84,7 +84,7 @@ class ContextDataset(Dataset):
 
     def __init__(self, store: ContextStore | str | Path, split: str | Sequence[str] | None = None,
                  require_gaze: bool = True, max_frames: int | None = None):
-        self.store = store if isinstance(store, ContextStore) else open_store(store)
+        self.store = store if isinstance(store, ContextStore) else open_store(store, verify=True)
         s = self.store
         n = len(s)
         if split is None:

@@ -71,7 +71,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     {baseline: bool}, ratio_to_prior, cdf_png, and gfm (`evaluate_gfm`) when asked.
     """
     torch.set_num_threads(threads)
-    st = store if isinstance(store, ContextStore) else open_store(store)
+    st = store if isinstance(store, ContextStore) else open_store(store, verify=True)
     ckpt = load_checkpoint(checkpoint)
     problems = check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None, force=force)
     for p in problems:

@@ -182,7 +182,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     out.mkdir(parents=True, exist_ok=True)
 
     # the data, and the configuration as the run folder records it
-    store = open_store(config.store)
+    store = open_store(config.store, verify=True)
     fingerprint = store_fingerprint(store)
     train_ds, val_ds = _splits(config, store)
     use_noise = config.uses_view_noise(train_ds.profile)
