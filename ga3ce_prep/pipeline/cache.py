@@ -24,6 +24,13 @@ import numpy as np
 
 from .faults import fault
 
+# The arrays an entry must hold (pipeline/tasks.py writes them): one without them is damaged, and
+# read as missing (then recomputed), like an unreadable one.
+ENTRY_ARRAYS: tuple[str, ...] = ("ids", "ok", "fail_idx", "fail_error", "fail_message")
+STAGE_ARRAYS: dict[str, tuple[str, ...]] = {
+    "depth": ("valid_frac", "filled_frac"), "objects": ("count", "n_dropped", "xyz", "area", "score"),
+    "head": ("head_pos",), "pose": ("pose",), "view": ("view",)}
+
 
 def _canon(obj: Any) -> Any:
     if isinstance(obj, dict):
@@ -105,16 +112,20 @@ class Cache:
         return self.path(stage, key).is_file()
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
-        """The entry's arrays, or None if it is missing or unreadable (then it is removed)."""
+        """The entry's arrays, or None if it is missing, unreadable or lacks its arrays (then it is
+        removed)."""
         p = self.path(stage, key)
         try:
             with np.load(p, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
+                entry = {k: z[k] for k in z.files}
         except FileNotFoundError:
             return None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            entry = {}
+        if not all(k in entry for k in (*ENTRY_ARRAYS, *STAGE_ARRAYS.get(stage, ()))):
             p.unlink(missing_ok=True)
             return None
+        return entry
 
     def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Path:
         """Write an entry atomically (temp file, fsync, rename, fsync the directory)."""
