@@ -352,9 +352,12 @@ def test_annotation_files_refused_for_what_they_are(synth_world, reference, tmp_
     ann.write_text("\n".join([text[0], text[1], text[2], text[1], *text[3:]]) + "\n")  # a duplicate row
     refused(_run(ga3ce, data, tmp_path / "s.zarr"), tmp_path / "s.zarr",
             f"{ann}: lines 2 and 4 both annotate frame train/scene1/0000; remove the duplicate row")
-    ann.write_text(text[0] + "\n")                                       # only the header
+    for split in ("train", "valid", "test"):                              # only headers (one alone: an empty split)
+        path = data / f"{split}_annotation.txt"
+        path.write_text(path.read_text().splitlines()[0] + "\n")
     refused(_run(ga3ce, data, tmp_path / "s.zarr"), tmp_path / "s.zarr",
-            f"{ann}: a header and no rows: the file annotates no frame", "write its rows", "or remove the file")
+            f"{ann}, {data / 'valid_annotation.txt'}, {data / 'test_annotation.txt'}: a header and no rows: the "
+            "dataset annotates no frame; write the rows")
 
 
 def test_limit_zero_is_one_line(synth_world, tmp_path, ga3ce):

@@ -116,7 +116,8 @@ class CsvTable:
 
 def read_csv_columns(path: Path, required: Sequence[str]) -> CsvTable:
     """Read a CSV with a header (a UTF-8 byte-order mark is allowed) into columns by name.
-    DatasetFormatError naming the file for missing columns, a row of the wrong length, or no rows."""
+    DatasetFormatError naming the file for missing columns or a row of the wrong length. A file
+    with a header alone is an empty table (an empty split); `check_rows` refuses a dataset of them."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
@@ -133,9 +134,6 @@ def read_csv_columns(path: Path, required: Sequence[str]) -> CsvTable:
         raise DatasetFormatError(
             f"{path}: missing column(s) {missing}; found {header}. The file must be a CSV with a "
             f"header naming at least {list(required)}")
-    if not rows:
-        raise DatasetFormatError(f"{path}: a header and no rows: the file annotates no frame; write its rows "
-                                 "(one per frame and person) or remove the file")
     cols: dict[str, list[str]] = {h: [] for h in header}
     for lineno, r in zip(lines, rows):
         if len(r) != len(header):
@@ -143,6 +141,14 @@ def read_csv_columns(path: Path, required: Sequence[str]) -> CsvTable:
         for h, c in zip(header, r):
             cols[h].append(c.strip())
     return CsvTable(path, cols, lines)
+
+
+def check_rows(tables: Sequence[CsvTable]) -> None:
+    """DatasetFormatError naming the files when the dataset's annotation tables have no row at all
+    (a header alone annotates no frame)."""
+    if not any(len(t) for t in tables):
+        raise DatasetFormatError(f"{', '.join(str(t.path) for t in tables)}: a header and no rows: the dataset "
+                                 "annotates no frame; write the rows (one per frame and person)")
 
 
 def gaze_direction(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..frames import SPLITS, FrameRef
-from .base import (DatasetAdapter, check_boxes, check_depth_units, check_distances, first_image_size, one_of,
-                   gaze_direction, intrinsics_from_fxfycxcy, read_csv_columns)
+from .base import (DatasetAdapter, check_boxes, check_depth_units, check_distances, check_rows, first_image_size,
+                   gaze_direction, intrinsics_from_fxfycxcy, one_of, read_csv_columns)
 
 COLUMNS: tuple[str, ...] = (
     "dataset_id", "frame_index", "x_initial", "y_initial", "w", "h", "eye_x", "eye_y",
@@ -47,6 +47,7 @@ class CAD120Adapter(DatasetAdapter):
         self.require("depth", "depth maps")
         self.annotation = self.require("annotation.txt", "annotations")
         t = self._table = read_csv_columns(self.annotation, REQUIRED)
+        check_rows([t])
         self._f = f = {c: t.floats(c) for c in REQUIRED if c != "dataset_id"}
         t.check_unique([frame_id(d, n) for d, n in zip(t.cols["dataset_id"], f["frame_index"])], "frame")
         x, y = f["x_initial"], f["y_initial"]

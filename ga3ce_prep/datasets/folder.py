@@ -24,9 +24,9 @@ import numpy as np
 
 from ..errors import DatasetFormatError
 from ..frames import SPLITS, FrameRef
-from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_depth_units, check_distances, check_intrinsics,
-                   check_option, image_size, read_csv_columns)
 from ..units import units_name
+from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_depth_units, check_distances, check_intrinsics,
+                   check_option, check_rows, image_size, read_csv_columns)
 
 LAYOUT = "\n".join(line for line in __doc__.splitlines() if line.startswith("    "))
 REQUIRED = ("name", "x1", "y1", "x2", "y2")
@@ -61,6 +61,7 @@ class FolderAdapter(DatasetAdapter):
         self.csv = self.require("heads.csv", "head boxes")
         self.depth_scale = depth_scale
         t = self._table = read_csv_columns(self.csv, REQUIRED)
+        check_rows([t])
         bad = sorted({s for s in t.cols.get("split", []) if s not in SPLITS})
         if bad:
             raise DatasetFormatError(f"{self.csv}: split values {bad} are not among {list(SPLITS)}")

@@ -27,8 +27,8 @@ from ..errors import DatasetFormatError
 from ..frames import FrameRef
 from ..geometry import normalize, project
 from ..skeleton import BODY25_HEAD
-from .base import (BOXES_XYXY, DatasetAdapter, check_distances, check_intrinsics, check_option, first_image_size, log,
-                   one_of)
+from .base import (BOXES_XYXY, DatasetAdapter, check_distances, check_intrinsics, check_option, first_image_size,
+                   log, one_of)
 from .safe_pickle import load_pickle
 
 SCENES: tuple[str, ...] = ("library", "lab", "kitchen", "living_room", "courtyard")

@@ -17,8 +17,9 @@ import numpy as np
 from ..errors import DatasetFormatError
 from ..frames import FrameRef
 from ..units import LENGTH_UNITS, METRES_PER_UNIT
-from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_option, decide_units, one_of, first_depth_values,
-                   first_image_size, gaze_direction, intrinsics_from_fxfycxcy, read_csv_columns)
+from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_option, check_rows, decide_units,
+                   first_depth_values, first_image_size, gaze_direction, intrinsics_from_fxfycxcy, one_of,
+                   read_csv_columns)
 
 SPLIT_FOLDERS: dict[str, str] = {"train": "train", "valid": "val", "test": "test"}  # folder -> split
 # Columns the adapter reads (by name; other columns are ignored). Boxes and 2D points in pixels.
@@ -58,6 +59,7 @@ class GFIEAdapter(DatasetAdapter):
             raise DatasetFormatError(f"gfie: no {{train,valid,test}}_annotation.txt in {self.root}. "
                                      f"Expected layout:\n{LAYOUT}")
         self._tables = {s: read_csv_columns(p, COLUMNS) for s, p in self.annotations.items()}
+        check_rows(list(self._tables.values()))
         self._values = {s: {c: t.floats(c) for c in COLUMNS} for s, t in self._tables.items()}
         for folder, t in self._tables.items():
             f = self._values[folder]
