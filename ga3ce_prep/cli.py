@@ -9,7 +9,7 @@ import sys
 import click
 
 from . import __version__
-from .errors import Ga3ceError
+from .errors import DEBUG_HINT, Ga3ceError, where_raised
 
 # name -> (module:attribute, one-line help). Order is the order `--help` lists them in.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -76,7 +76,9 @@ def cli() -> None:
 
 
 def main() -> None:
-    """Entry point: runs the CLI and prints ga3ce-prep's own errors as one clear line."""
+    """Entry point: runs the CLI and prints ga3ce-prep's own errors as one clear `error:` line (exit
+    2), anything else as one line saying it is a bug (exit 1); GA3CE_DEBUG=1 raises instead, for the
+    traceback."""
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort:
@@ -86,10 +88,16 @@ def main() -> None:
         e.show()
         sys.exit(e.exit_code)
     except Ga3ceError as e:
-        click.secho(f"error: {e}", fg="red", err=True)
         if os.environ.get("GA3CE_DEBUG"):
             raise
+        click.secho(f"error: {e}", fg="red", err=True)
         sys.exit(2)
+    except Exception as e:  # noqa: BLE001 - a bug: one line, the traceback on request
+        if os.environ.get("GA3CE_DEBUG"):
+            raise
+        click.secho(f"error: unexpected {type(e).__name__}: {e} (at {where_raised(e)}); a bug in ga3ce-prep: "
+                    f"{DEBUG_HINT} and report it", fg="red", err=True)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

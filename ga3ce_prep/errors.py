@@ -1,4 +1,17 @@
 """Error classes. Each message names the file or key at fault and the fix."""
+from __future__ import annotations
+
+import traceback
+from pathlib import Path
+
+DEBUG_HINT = "rerun with GA3CE_DEBUG=1 for the traceback"
+
+
+def where_raised(e: BaseException) -> str:
+    """"<file>:<line>" of the innermost frame an unexpected exception was raised in ("" if unknown),
+    for the one-line messages that stand in for a traceback."""
+    tb = traceback.extract_tb(e.__traceback__)
+    return f"{Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
 
 
 class Ga3ceError(Exception):

@@ -2,10 +2,11 @@
 
 Adapters yield FrameRefs (paths and annotations, nothing computed); the pipeline's stages load
 pixels through `load_rgb` / `load_depth` so every format's quirks (NaN holes, millimetre PNGs,
-truncated files) are handled in one place.
+truncated files, 8-bit depth, headers declaring huge sizes) are handled in one place.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +15,10 @@ import numpy as np
 from PIL import Image
 
 from .errors import FrameError
+
+# Pillow warns, then refuses, on headers declaring more pixels than Image.MAX_IMAGE_PIXELS
+# (179 Mpx, beyond any camera frame): a corrupt file or a decompression bomb. Here both refuse.
+warnings.filterwarnings("error", category=Image.DecompressionBombWarning)
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
@@ -48,6 +53,21 @@ class FrameRef:
     sequence: str = ""           # temporal sequence (GAFA camera folder); "" if none
     index: int = 0               # raw frame number within `sequence`
     keypoints_2d: np.ndarray | None = None  # (25, 3) OpenPose BODY_25 u, v, confidence (GAFA)
+    annotation: str = ""         # where the frame's annotation is, for messages: "<file>:<line>", "<pkl> row <i>"
+
+
+def box_fault(box: np.ndarray) -> str:
+    """Why an x1, y1, x2, y2 box cannot be a head box, "" if it can: not finite, inverted (x2 < x1
+    or y2 < y1) or empty (zero width or height)."""
+    x1, y1, x2, y2 = (float(v) for v in box)
+    if not np.all(np.isfinite([x1, y1, x2, y2])):
+        return "is not finite"
+    for a, lo, hi in (("x", x1, x2), ("y", y1, y2)):
+        if hi < lo:
+            return f"is inverted ({a}2 {hi:g} < {a}1 {lo:g})"
+        if hi == lo:
+            return f"is empty (zero {'width' if a == 'x' else 'height'}: {a}1 = {a}2 = {lo:g})"
+    return ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,18 +137,48 @@ class DepthMap:
     valid: np.ndarray
 
 
-def load_rgb(path: str | Path) -> np.ndarray:
-    """Read an image file as (H, W, 3) uint8 RGB. Raises FrameError naming the file if it is
-    missing, unreadable or truncated (Pillow refuses truncated JPEG/PNG data)."""
-    path = Path(path)
+def _open_checked(path: Path) -> Image.Image:
+    """The image at `path` with only its header read. FrameError when the header declares more
+    pixels than Image.MAX_IMAGE_PIXELS (a corrupt file or a decompression bomb); Pillow's own
+    errors (OSError, SyntaxError, ValueError) for a file it cannot read."""
+    try:
+        im = Image.open(path)
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise FrameError(f"image {path}: its header declares a size beyond any camera frame ({e}); the file is "
+                         "corrupt or hostile: replace it") from None
+    if im.width * im.height > Image.MAX_IMAGE_PIXELS:  # when the warning filter above was reset
+        im.close()
+        raise FrameError(f"image {path}: its header declares {im.width}x{im.height} pixels, beyond any camera "
+                         "frame; the file is corrupt or hostile: replace it")
+    return im
+
+
+def _open_image(path: Path) -> Image.Image:
+    """`_open_checked` for an RGB frame: FrameError naming the file for any problem."""
     if not path.is_file():
         raise FrameError(f"image file not found: {path}")
     try:
-        with Image.open(path) as im:
-            im.load()
-            return np.asarray(im.convert("RGB"))
+        return _open_checked(path)
     except (OSError, SyntaxError, ValueError) as e:
         raise FrameError(f"cannot decode image {path}: {e}; re-extract or replace the file") from e
+
+
+def image_header_size(path: str | Path) -> tuple[int, int]:
+    """(W, H) from an image's header only; FrameError as `load_rgb` gives it."""
+    with _open_image(Path(path)) as im:
+        return im.size
+
+
+def load_rgb(path: str | Path) -> np.ndarray:
+    """Read an image file as (H, W, 3) uint8 RGB. Raises FrameError naming the file if it is
+    missing, unreadable, truncated (Pillow refuses truncated JPEG/PNG data) or declares a huge size."""
+    path = Path(path)
+    with _open_image(path) as im:
+        try:
+            im.load()
+            return np.asarray(im.convert("RGB"))
+        except (OSError, SyntaxError, ValueError) as e:
+            raise FrameError(f"cannot decode image {path}: {e}; re-extract or replace the file") from e
 
 
 def check_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -139,13 +189,24 @@ def check_rgb(rgb: np.ndarray) -> np.ndarray:
     return rgb
 
 
-def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
-    """Read a depth map as (H, W) float32 metres, 0 = unknown.
+def depth_type_fault(d: np.ndarray) -> str:
+    """Why stored depth values cannot be a depth map in any unit ("" if they can): not a single
+    channel, not numeric, or 8 bits (256 levels: a visualisation, not a measurement)."""
+    if d.ndim != 2:
+        return f"has shape {d.shape}; expected a single-channel (H, W) map"
+    if d.dtype.kind not in "fiu":
+        return f"holds {d.dtype} values; expected numbers (float metres or uint16 millimetres)"
+    if d.dtype.itemsize == 1:
+        return (f"is 8-bit ({d.dtype}, values 0-{int(d.max()) if d.size else 0}): a depth map needs 16 bits "
+                "(uint16 millimetres) or floats; this looks like a depth visualisation, export the raw depth")
+    return ""
 
-    `.npy` float arrays (GFIE: NaN holes) are read with allow_pickle=False; 16-bit PNGs (CAD-120:
-    millimetres, 0 invalid) with OpenCV. `scale` converts stored units to metres. Non-finite and
-    negative values become 0.
-    """
+
+def read_depth(path: str | Path, check: bool = True) -> np.ndarray:
+    """A depth file's stored values as (H, W), unscaled: `.npy` arrays read with allow_pickle=False
+    (GFIE: float metres, NaN holes), images with OpenCV (CAD-120: 16-bit PNG millimetres, 0
+    invalid). FrameError naming the file if it is missing, unreadable, or (check) not a depth map
+    in any unit (`depth_type_fault`)."""
     path = Path(path)
     if not path.is_file():
         raise FrameError(f"depth file not found: {path}")
@@ -155,11 +216,22 @@ def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
         except (OSError, ValueError, EOFError) as e:
             raise FrameError(f"cannot read depth {path}: {e}") from e
     else:
+        try:  # a header declaring a huge size is refused before OpenCV allocates it
+            _open_checked(path).close()
+        except (OSError, SyntaxError, ValueError):
+            pass  # a format Pillow does not read: OpenCV decides
         d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if d is None:
             raise FrameError(f"cannot decode depth image {path}: missing, truncated or not an image")
-    if d.ndim != 2:
-        raise FrameError(f"depth {path} has shape {d.shape}; expected a single-channel (H, W) map")
-    d = d.astype(np.float32) * np.float32(scale)
+    fault = depth_type_fault(d) if check else ""
+    if fault:
+        raise FrameError(f"depth {path} {fault}")
+    return d
+
+
+def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
+    """Read a depth map (`read_depth`) as (H, W) float32 metres, 0 = unknown: `scale` converts
+    stored units to metres; non-finite and negative values become 0."""
+    d = read_depth(path).astype(np.float32) * np.float32(scale)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d

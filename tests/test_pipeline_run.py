@@ -18,7 +18,7 @@ import zarr
 from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
-from ga3ce_prep.errors import StoreError
+from ga3ce_prep.errors import DatasetFormatError, StoreError
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.pipeline.finalize import FinalizeCounts, shard_block
 from ga3ce_prep.pipeline.lock import RunLock
@@ -242,18 +242,14 @@ def test_turning_on_cache_depth_maps_keeps_the_depth_failure_records(synth_world
         np.testing.assert_array_equal(a.failures[name], b.failures[name], err_msg=name)
 
 
-def test_nan_intrinsics_drop_every_frame_with_a_clear_message(synth_world, tmp_path):
+def test_nan_intrinsics_stop_the_run_before_any_work(synth_world, tmp_path):
     data = tmp_path / "nank"
     shutil.copytree(synth_world, data)
     np.save(data / "CameraKinect.npy", np.array([np.nan, 140.0, 80.0, 60.0]))
-    summary = _run(data, tmp_path / "s.zarr", ["run.shard_size=12"])
-    s = open_store(tmp_path / "s.zarr")
-    assert summary.counts.frames_kept == 0
-    assert len(s) == 0
-    assert len(s.failures["frame_id"]) == 12
-    assert set(s.failures["stage"]) == {"input"}
-    assert "intrinsics K" in s.failures["message"][0]
-    assert "fx, fy > 0" in s.failures["message"][0]
+    with pytest.raises(DatasetFormatError, match=r"CameraKinect.npy: intrinsics fx nan, fy 140.*not finite"):
+        _run(data, tmp_path / "s.zarr", ["run.shard_size=12"])
+    assert not (tmp_path / "s.zarr").exists()
+    assert not (tmp_path / "s.zarr.work").exists()
 
 
 def test_failed_pose_or_objects_degrade_the_frame_instead_of_dropping_it():

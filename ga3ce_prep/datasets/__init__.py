@@ -7,8 +7,10 @@ when a stage loads the frame. Adapters never run a model.
 from __future__ import annotations
 
 import importlib
+import inspect
 from pathlib import Path
 
+from ..errors import ConfigError
 from .base import DatasetAdapter
 
 # name -> "module:class"
@@ -21,11 +23,18 @@ ADAPTERS: dict[str, str] = {
 
 
 def open_dataset(name: str, root: str | Path, **options) -> DatasetAdapter:
-    """The adapter `name` over the dataset at `root` (options are adapter-specific)."""
+    """The adapter `name` over the dataset at `root` (options are adapter-specific: ConfigError
+    naming `dataset.options.<name>` for one it does not take, or a value it refuses)."""
     if name not in ADAPTERS:
-        raise KeyError(f"unknown dataset format {name!r}; known: {', '.join(ADAPTERS)}")
-    module, cls = ADAPTERS[name].split(":")
-    return getattr(importlib.import_module(module), cls)(root, **options)
+        raise ConfigError(f"dataset.format: unknown dataset format {name!r}; known: {', '.join(ADAPTERS)}")
+    module, cls_name = ADAPTERS[name].split(":")
+    cls = getattr(importlib.import_module(module), cls_name)
+    known = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "root")]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ConfigError(f"dataset.options.{unknown[0]}: the {name} adapter has no such option; its options: "
+                          f"{', '.join(known) or 'none'} (docs/datasets.md)")
+    return cls(root, **options)
 
 
 __all__ = ["ADAPTERS", "DatasetAdapter", "open_dataset"]

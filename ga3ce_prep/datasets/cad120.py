@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..frames import FrameRef
-from .base import (DatasetAdapter, first_image_size, float_column, gaze_direction, intrinsics_from_fxfycxcy,
-                   read_csv_columns)
+from ..frames import SPLITS, FrameRef
+from .base import (DatasetAdapter, check_boxes, check_depth_units, check_distances, check_rows, first_image_size,
+                   gaze_direction, intrinsics_from_fxfycxcy, one_of, read_csv_columns)
 
 COLUMNS: tuple[str, ...] = (
     "dataset_id", "frame_index", "x_initial", "y_initial", "w", "h", "eye_x", "eye_y",
@@ -41,22 +41,35 @@ class CAD120Adapter(DatasetAdapter):
 
     def __init__(self, root: str | Path, split: str = "test"):
         super().__init__(root)
-        self.split = split
+        self.split = one_of("split", split, SPLITS)
         self.K = intrinsics_from_fxfycxcy(self.require("CameraKinect.npy", "camera intrinsics"))
         self.require("rgb", "RGB frames")
         self.require("depth", "depth maps")
         self.annotation = self.require("annotation.txt", "annotations")
-        self._cols, self._n = read_csv_columns(self.annotation, REQUIRED)
+        t = self._table = read_csv_columns(self.annotation, REQUIRED)
+        check_rows([t])
+        self._f = f = {c: t.floats(c) for c in REQUIRED if c != "dataset_id"}
+        t.check_unique([frame_id(d, n) for d, n in zip(t.cols["dataset_id"], f["frame_index"])], "frame")
+        x, y = f["x_initial"], f["y_initial"]
+        check_boxes(np.stack([x, y, x + f["w"], y + f["h"]], 1), t, "x_initial, y_initial, w, h", normalised=True)
+        check_depth_units([self._depth_path(d, n) for d, n in list(zip(t.cols["dataset_id"], f["frame_index"]))[:5]],
+                          DEPTH_SCALE, "the maps' export to uint16 millimetres (CAD-120's depth format)")
+        check_distances(f["eye_Z"], f"{self.annotation} eye_Z", "the columns eye_X..gaze_Z to metres (CAD-120's unit)",
+                        "eye distance")
+        self.units = {"depth": "mm", "eye_gaze_xyz": "m", "boxes": "normalised x, y, w, h (converted to pixels)",
+                      "decided_by": "the format"}
+
+    def _depth_path(self, dataset_id: str, n: float) -> Path:
+        return self.root / "depth" / dataset_id / f"Depth_{int(n)}.png"
 
     def frames(self) -> Iterator[FrameRef]:
-        cols, path = self._cols, self.annotation
-        f = {c: float_column(cols, c, path) for c in REQUIRED if c not in ("dataset_id",)}
+        t, f = self._table, self._f
         eye = np.stack([f["eye_X"], f["eye_Y"], f["eye_Z"]], 1)
         target = np.stack([f["gaze_X"], f["gaze_Y"], f["gaze_Z"]], 1)
         gaze = gaze_direction(eye, target)
         sizes: dict[str, tuple[int, int]] = {}
-        for i in range(self._n):
-            did, n = cols["dataset_id"][i], int(f["frame_index"][i])
+        for i in range(len(t)):
+            did, n = t.cols["dataset_id"][i], int(f["frame_index"][i])
             rgb = self.root / "rgb" / did / f"RGB_{n}.png"
             if did not in sizes:
                 sizes[did] = first_image_size([rgb, *sorted(rgb.parent.glob("RGB_*.png"))[:3]])
@@ -66,9 +79,9 @@ class CAD120Adapter(DatasetAdapter):
                 id=frame_id(did, n), split=self.split, scene=did, image_path=rgb, K=self.K,
                 image_size=(W, H),
                 head_box=(np.array([x, y, x + w, y + h]) * [W, H, W, H]).astype(np.float32),
-                depth_path=self.root / "depth" / did / f"Depth_{n}.png", depth_scale=DEPTH_SCALE,
+                depth_path=self._depth_path(did, n), depth_scale=DEPTH_SCALE,
                 eye=eye[i].astype(np.float32), gaze_target=target[i].astype(np.float32),
                 gaze=gaze[i].astype(np.float32),
                 gaze_2d=np.array([f["gaze_x"][i] * W, f["gaze_y"][i] * H], np.float32),
-                sequence=did, index=n,
+                sequence=did, index=n, annotation=t.where(i),
             )

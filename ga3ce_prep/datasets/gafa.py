@@ -27,7 +27,8 @@ from ..errors import DatasetFormatError
 from ..frames import FrameRef
 from ..geometry import normalize, project
 from ..skeleton import BODY25_HEAD
-from .base import DatasetAdapter, first_image_size, log
+from .base import (BOXES_XYXY, DatasetAdapter, check_distances, check_intrinsics, check_option, first_image_size,
+                   log, one_of)
 from .safe_pickle import load_pickle
 
 SCENES: tuple[str, ...] = ("library", "lab", "kitchen", "living_room", "courtyard")
@@ -113,6 +114,16 @@ def body_boxes(kp: np.ndarray) -> np.ndarray:
     return np.stack([u, v, u + w, v + side], axis=1)
 
 
+def _numeric(pkl: Path, field: str, value: object, shape: str) -> np.ndarray:
+    """`value` as a float64 array; DatasetFormatError naming the file and the field when it does not
+    hold numbers (strings, None, ragged lists)."""
+    try:
+        a = np.asarray(value, np.float64)
+    except (TypeError, ValueError) as e:
+        raise DatasetFormatError(f"{pkl}: {field} does not hold numbers ({e}); expected a float array {shape}") from None
+    return a
+
+
 def _pick_k(K: np.ndarray, head_pos: np.ndarray, kp: np.ndarray, where: Path) -> np.ndarray:
     """K or its transpose, whichever projects the head positions closer to the head keypoints."""
     KT = np.array([[K[1, 1], 0, K[1, 2]], [0, K[0, 0], K[0, 2]], [0, 0, 1]])
@@ -139,17 +150,18 @@ class GAFAAdapter(DatasetAdapter):
         super().__init__(root)
         if (self.root / "raw_data").is_dir():
             self.root = self.root / "raw_data"
+        self.k_mode = one_of("k_mode", k_mode, ("auto", "as_is"))
+        check_option("sessions", sessions, sessions is None or (
+            isinstance(sessions, (list, tuple)) and all(isinstance(s, str) for s in sessions)),
+            "a list of \"<scene>/<session>\" names or null")
         intr = self.require("intrinsics.npz", "shared camera intrinsics")
         try:
             with np.load(intr, allow_pickle=False) as z:
-                self.K = np.asarray(z["cam_mat"], np.float64)
-        except (KeyError, OSError, ValueError) as e:
-            raise DatasetFormatError(f"{intr}: cannot read cam_mat ({e})") from e
-        if self.K.shape != (3, 3):
-            raise DatasetFormatError(f"{intr}: cam_mat has shape {self.K.shape}, expected (3, 3)")
-        if k_mode not in ("auto", "as_is"):
-            raise ValueError(f"k_mode must be auto or as_is, not {k_mode!r}")
-        self.k_mode = k_mode
+                K = np.asarray(z["cam_mat"], np.float64)
+        except (KeyError, OSError, ValueError, TypeError) as e:
+            raise DatasetFormatError(f"{intr}: cannot read cam_mat ({e}); expected a (3, 3) float array") from e
+        self.K = check_intrinsics(K, intr)
+        self.units = {"eye_xyz": "m", "boxes": BOXES_XYXY + " (from the keypoints)", "decided_by": "the format"}
         self.cameras: list[tuple[str, Path]] = []  # (session, pkl path)
         unknown = []
         for scene in SCENES:
@@ -170,25 +182,32 @@ class GAFAAdapter(DatasetAdapter):
                                      f"Expected layout:\n{LAYOUT}")
 
     def _load_camera(self, pkl: Path) -> dict[str, np.ndarray]:
+        """The camera pickle's arrays, checked: a dict with PKL_KEYS, numeric arrays of the expected
+        shapes, head positions in metres. DatasetFormatError naming the file and the field."""
         d = load_pickle(pkl)
+        if not isinstance(d, dict):
+            raise DatasetFormatError(f"{pkl}: holds a {type(d).__name__}, not a dict; a GAFA camera pickle is a dict "
+                                     f"with keys {list(PKL_KEYS)}")
         missing = [k for k in PKL_KEYS if k not in d]
         if missing:
-            raise DatasetFormatError(f"{pkl}: missing key(s) {missing}; found {sorted(d)}")
-        kp = np.asarray(d["keypoints2d"], np.float32)
+            raise DatasetFormatError(f"{pkl}: missing key(s) {missing}; found {sorted(map(str, d))}")
+        kp = _numeric(pkl, "keypoints2d", d["keypoints2d"], "(N, 25, >=2) pixels")
         if kp.ndim != 3 or kp.shape[1] != 25 or kp.shape[2] < 2:
             raise DatasetFormatError(f"{pkl}: keypoints2d has shape {kp.shape}, expected (N, 25, >=2)")
+        kp = kp.astype(np.float32)
         if kp.shape[2] == 2:  # no confidence column: detected joints get confidence 1
             kp = np.concatenate([kp, np.any(kp != 0, axis=-1, keepdims=True).astype(np.float32)], axis=-1)
         n = len(kp)
         out = {"keypoints2d": kp[:, :, :3]}
         for key, sub in (("gaze", "direction"), ("head", "direction"), ("head", "position")):
-            try:
-                a = np.asarray(d[key][sub], np.float64)
-            except (KeyError, TypeError, IndexError):
-                raise DatasetFormatError(f"{pkl}: {key}[{sub!r}] missing") from None
+            if not isinstance(d[key], dict) or sub not in d[key]:
+                raise DatasetFormatError(f"{pkl}: {key}[{sub!r}] missing; {key} must be a dict with {sub!r} ({n}, 3)")
+            a = _numeric(pkl, f"{key}[{sub!r}]", d[key][sub], f"({n}, 3)")
             if a.shape != (n, 3):
                 raise DatasetFormatError(f"{pkl}: {key}[{sub!r}] has shape {a.shape}, expected ({n}, 3)")
             out[f"{key}_{sub}"] = a
+        check_distances(np.linalg.norm(out["head_position"], axis=1), f"{pkl} head['position']",
+                        "the pickle's positions to metres (GAFA's unit)", "head distance")
         return out
 
     def frames(self) -> Iterator[FrameRef]:
@@ -209,5 +228,5 @@ class GAFAAdapter(DatasetAdapter):
                     image_path=folder / f"{i:06d}.jpg", K=K, image_size=size,
                     head_box=hb[i].astype(np.float32), body_box=bb[i].astype(np.float32),
                     eye=cam["head_position"][i].astype(np.float32), gaze=gaze[i].astype(np.float32),
-                    sequence=f"{session}/{camera}", index=i, keypoints_2d=kp[i],
+                    sequence=f"{session}/{camera}", index=i, keypoints_2d=kp[i], annotation=f"{pkl} row {i}",
                 )

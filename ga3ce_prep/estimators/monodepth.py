@@ -34,10 +34,9 @@ import numpy as np
 from ..errors import ConfigError, FrameError, ModelFileError
 from ..frames import DepthMap, check_rgb
 from ..params import param
+from ..units import Units, check_plausible, to_metres
 from .onnx_runtime import RuntimeParams, create_session, resolve_providers
 
-Units = Literal["m", "cm", "mm", "inverse_m"]
-METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 INTERPOLATION = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -129,35 +128,6 @@ def focal_scale(fx: float, net_width: int, crop_width: int, focal_px: float) -> 
     """The factor on a depth network's output for a camera of horizontal focal fx (image pixels)
     whose crop_width-pixel-wide crop became net_width pixels: (fx * net_width / crop_width) / focal_px."""
     return float(fx) * net_width / crop_width / focal_px
-
-
-def to_metres(x: np.ndarray, units: str) -> np.ndarray:
-    """A depth array in `units` (m, cm, mm, inverse_m) as float32 metres; inverse values <= 0 give 0."""
-    x = np.asarray(x, np.float32)
-    if units == "inverse_m":
-        with np.errstate(divide="ignore"):
-            return np.where(x > 0, 1.0 / x, 0.0).astype(np.float32)
-    return x if units == "m" else x * np.float32(METRES_PER_UNIT[units])
-
-
-def check_plausible(metres: np.ndarray, raw: np.ndarray, units: str, plausible: tuple[float, ...], what: str,
-                    fix: str) -> None:
-    """FrameError unless the median of the positive depths (metres, (H, W)) lies in `plausible`
-    [min, max] metres. `raw`: the same values in the source's `units`, to name the units that would
-    fit; `what` names the source (file, frame), `fix` the parameter to change."""
-    pos = metres[metres > 0]
-    lo, hi = plausible
-    if not pos.size:
-        raise FrameError(f"{what}: no positive depth (all values are 0, negative or not finite)")
-    med = float(np.median(pos))
-    if lo <= med <= hi:
-        return
-    r = np.float32(np.median(raw[metres > 0]))
-    as_units = {u: float(to_metres(r, u)) for u in ("m", "cm", "mm", "inverse_m") if u != units}
-    fits = [f"{u} ({v:.3g} m)" for u, v in as_units.items() if lo <= v <= hi]
-    hint = f"; read as {' or '.join(fits)} it would be plausible" if fits else ""
-    raise FrameError(f"{what}: median depth {med:.4g} m (read as units {units}) is outside the plausible "
-                     f"{lo:g}-{hi:g} m{hint}: set {fix}")
 
 
 @dataclass(frozen=True)

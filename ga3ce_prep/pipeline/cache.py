@@ -29,6 +29,13 @@ from .faults import fault
 
 log = logging.getLogger("ga3ce_prep.pipeline")
 
+# The arrays an entry must hold (pipeline/tasks.py writes them): one without them is damaged, and
+# read as missing (then recomputed), like an unreadable one.
+ENTRY_ARRAYS: tuple[str, ...] = ("ids", "ok", "fail_idx", "fail_error", "fail_message")
+STAGE_ARRAYS: dict[str, tuple[str, ...]] = {
+    "depth": ("valid_frac", "filled_frac"), "objects": ("count", "n_dropped", "xyz", "area", "score"),
+    "head": ("head_pos",), "pose": ("pose",), "view": ("view",)}
+
 
 def _canon(obj: Any) -> Any:
     if isinstance(obj, dict):
@@ -110,7 +117,8 @@ class Cache:
         return self.path(stage, key).is_file()
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
-        """The entry's arrays, or None if it is missing or damaged (then it is removed)."""
+        """The entry's arrays, or None if it is missing, damaged (a bad CRC-32, unreadable) or lacks
+        its arrays (then it is removed)."""
         p = self.path(stage, key)
         try:
             data = p.read_bytes()
@@ -119,7 +127,11 @@ class Cache:
             if bad is not None:
                 raise zipfile.BadZipFile(f"bad CRC-32 for {bad}")
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
+                entry = {k: z[k] for k in z.files}
+            missing = [k for k in (*ENTRY_ARRAYS, *STAGE_ARRAYS.get(stage, ())) if k not in entry]
+            if missing:
+                raise KeyError(f"lacks {missing}")
+            return entry
         except FileNotFoundError:
             return None
         except Exception as e:  # noqa: BLE001 - whatever a damaged file makes zipfile or numpy raise

@@ -28,7 +28,8 @@ import click
                    "and the work directory at the same paths.")
 @click.option("--shard-size", type=int, default=None,
               help="Frames per shard (the unit of caching and of tasks). Default: the pipeline's run.shard_size.")
-@click.option("--limit", type=int, default=None, help="Process only the first N frames (in the dataset's order).")
+@click.option("--limit", type=int, default=None,
+              help="Process only the first N frames (in the dataset's order; N >= 1). Default: every frame.")
 @click.option("--work", type=click.Path(file_okay=False), default=None,
               help="Work directory for its lock, the stage cache and finalize's scratch. Default: <out>.work (the "
                    "output's own lock is <out>.lock)")
@@ -52,8 +53,12 @@ def run(pipeline, data, out, overwrite, workers, scheduler, shard_size, limit, w
     Example:
       ga3ce-prep run --pipeline synthetic --data out/synthetic --out out/synthetic.zarr
     """
+    from ..errors import ConfigError
     from .run import run_pipeline
 
+    if limit is not None and limit < 1:
+        raise ConfigError(f"--limit {limit}: the number of frames to process must be at least 1; leave --limit out "
+                          "to process every frame")
     s = run_pipeline(pipeline, data, out, workers=workers, scheduler=scheduler, shard_size=shard_size,
                      limit=limit, work_dir=work, overrides=list(overrides), models=models, overwrite=overwrite,
                      progress=not quiet)

@@ -129,8 +129,9 @@ def model_dir(models: str | Path | None = None) -> Path:
 
 
 def _resolve(value: str, data_root: Path, models: Path) -> Path:
-    p = Path(str(value).replace("{data}", str(data_root)).replace("{models}", str(models)))
-    return p if p.is_absolute() else (Path.cwd() / p)
+    """A file parameter as an absolute path: `{data}` and `{models}` replaced, relative to the
+    current directory otherwise."""
+    return Path(os.path.abspath(str(value).replace("{data}", str(data_root)).replace("{models}", str(models))))
 
 
 def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
@@ -150,7 +151,7 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
     else:
         path = resolve_pipeline_path(pipeline)
         text = path.read_bytes()
-        where = str(path)
+        where = os.path.abspath(path)  # the provenance records it: absolute, as every path there
         try:
             raw = yaml.safe_load(text)
         except yaml.YAMLError as e:
@@ -177,6 +178,8 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
             if kind and name in params and params[name] is not None:
                 p = _resolve(params[name], data_root, model_dir(models))
                 resolved[name] = p
+                if "{" not in str(params[name]):  # the effective configuration records it absolute
+                    params[name] = str(p)
                 (model_files if kind == "model" else data_files)[name] = p
         stages[stage] = StageConfig(stage, backend, resolved, data_files, model_files)
     conf = PipelineConfig(

@@ -30,14 +30,13 @@ from __future__ import annotations
 
 import os
 import time
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import Ga3ceError
+from ..errors import DEBUG_HINT, FrameError, Ga3ceError, StoreError, where_raised
 from ..frames import FrameRef, Window
 from ..skeleton import N_JOINTS
 from ..stages import call_backend, dependency_order
@@ -173,10 +172,8 @@ class StageEntry:
         if os.environ.get("GA3CE_DEBUG"):
             raise e
         msg = str(e) or type(e).__name__
-        if not isinstance(e, Ga3ceError):  # an unexpected error: keep where it happened
-            tb = traceback.extract_tb(e.__traceback__)
-            if tb:
-                msg += f" (at {Path(tb[-1].filename).name}:{tb[-1].lineno}; rerun with GA3CE_DEBUG=1 for the traceback)"
+        if not isinstance(e, Ga3ceError) and where_raised(e):  # an unexpected error: keep where it happened
+            msg += f" (at {where_raised(e)}; {DEBUG_HINT})"
         self.fail_idx.append(i)
         self.fail_error.append(type(e).__name__)
         self.fail_message.append(msg)
@@ -241,9 +238,17 @@ def _first(results: list[Any]) -> Any:
 
 
 def _shaped(v: Any, shape: tuple[int, ...], stage: str) -> np.ndarray:
+    """A backend's per-frame value as float32 of `shape`, finite: a pose may have NaN joints (not
+    found) but not only those, nor an infinite value. Otherwise a failure record, never a value
+    stored as if it were one."""
     v = np.asarray(v, np.float32)
     if v.shape != shape:
         raise ValueError(f"{stage} backend returned shape {v.shape}, expected {shape}")
+    bad = np.isinf(v).any() or (np.isnan(v).all() if stage == "pose" else np.isnan(v).any())
+    if bad:
+        what = "no finite joint" if stage == "pose" and np.isnan(v).all() else "non-finite values"
+        raise FrameError(f"the {stage} backend returned {what} ({np.count_nonzero(~np.isfinite(v))} of {v.size}): "
+                         f"not stored as a {stage}; a backend raises FrameError when it finds none")
     return v
 
 
@@ -262,7 +267,7 @@ def new_entry(stage: str, shard: Shard, sources: tuple[str, ...] = ()) -> StageE
                                   "score": np.zeros(0, np.float32)},
                           count=np.zeros(n, np.int32), n_dropped=np.zeros(n, np.int32))
     if stage == "head":  # (3,) t_object
-        return StageEntry(stage, shard, lambda hp: {"head_pos": hp}, sources=sources,
+        return StageEntry(stage, shard, lambda hp: {"head_pos": _shaped(hp, (3,), stage)}, sources=sources,
                           head_pos=np.full((n, 3), np.nan, np.float32))
     if stage in ("pose", "view"):  # (N_JOINTS, 3) or (3,)
         shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
@@ -278,8 +283,8 @@ def _load_ok(cache: Cache, stage: str, shard: Shard) -> np.ndarray:
 def _load(cache: Cache, stage: str, shard: Shard) -> dict[str, np.ndarray]:
     e = cache.load(stage, shard.keys[stage])
     if e is None:
-        raise RuntimeError(f"cache entry {stage}/{shard.keys[stage]} vanished: was the cache directory "
-                           f"{cache.root} changed during the run? Rerun to recompute it")
+        raise StoreError(f"cache entry {cache.path(stage, shard.keys[stage])} (stage {stage}, shard {shard.index}) "
+                         "vanished or was damaged (then removed); rerun the same command to recompute it")
     return e
 
 

@@ -17,13 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, FrameError
+from ..errors import FrameError
 from ..estimators.depth_completion import CompletionParams, complete_depth
-from ..estimators.monodepth import (PRESETS, MonoDepthOptions, Preset, Units, check_plausible, resolve_options,
-                                    to_metres)
+from ..estimators.monodepth import PRESETS, MonoDepthOptions, Preset, resolve_options
 from ..estimators.onnx_runtime import RuntimeParams
 from ..frames import FrameRef, load_depth, load_rgb
 from ..params import param
+from ..units import DISTANCE_RANGE_M, LENGTH_UNITS, Units, check_plausible, to_metres, units_name
 from .base import DepthBackend, DepthMap, ProcessEstimator
 from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
@@ -41,18 +41,25 @@ def check_resolution(frame: FrameRef, shape: tuple[int, ...], what: str) -> None
 
 
 class SensorDepth(DepthBackend):
-    """Load the sensor depth the adapter points to (units per adapter) and complete its holes."""
+    """Load the sensor depth the adapter points to (units per adapter, recorded in the dataset's
+    provenance), refuse a map whose median is not a plausible distance (`units.DISTANCE_RANGE_M`:
+    this file is in another unit), and complete its holes."""
 
     name = "sensor"
+    version = "2"  # 2: a map with an implausible median fails (a file in another unit)
 
     Params = CompletionParams
 
     def depth(self, frame: FrameRef) -> DepthMap:
         if frame.depth_path is None:
-            raise FrameError(f"frame {frame.id} has no depth map; this dataset needs a depth estimator "
-                             "(stages.depth.backend) instead of 'sensor'")
+            raise FrameError(f"frame {frame.id} has no depth map in the dataset's layout; this dataset needs a depth "
+                             "estimator (stages.depth.backend) instead of 'sensor'")
         raw = load_depth(frame.depth_path, frame.depth_scale)
         check_resolution(frame, raw.shape, f"depth {frame.depth_path}")
+        if (raw > 0).any():
+            check_plausible(raw, raw / np.float32(frame.depth_scale), units_name(frame.depth_scale), DISTANCE_RANGE_M,
+                            f"depth {frame.depth_path}", "the dataset's depth units (dataset.options) or re-export "
+                            "this file in them", candidates=LENGTH_UNITS)
         dm = complete_depth(raw, self.p)
         if not dm.valid.any():
             raise FrameError(f"depth {frame.depth_path} has no valid pixel in "
@@ -184,15 +191,7 @@ class PrecomputedDepth(DepthBackend):
     def check(self) -> None:
         """Before any work: the file's layout, and the units on the first frame with a positive depth
         (among the first ten)."""
-        t = self._table()
-        for fid in t.ids[:10]:
-            raw = t.get(fid)
-            if np.any(raw > 0):
-                try:
-                    self._metres(fid, raw)
-                except FrameError as e:
-                    raise ConfigError(str(e)) from None
-                return
+        self._table().check_first(self._metres, lambda raw: bool(np.any(raw > 0)))
 
     def depth(self, frame: FrameRef) -> DepthMap:
         d = self._metres(frame.id, self._table().get(frame.id))

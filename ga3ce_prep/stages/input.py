@@ -1,8 +1,9 @@
 """The input stage: per-frame checks before any geometry, so a broken frame fails once, early,
 with a clear message (and is dropped) instead of giving NaN positions downstream.
 
-Checks: K finite with positive focal lengths; the head box finite; the image file present and
-decodable (a full decode, so truncated JPEG/PNG files are caught) at the size the adapter reported.
+Checks: K finite with positive focal lengths; the head box finite, not inverted and not empty; the
+image file present and decodable (a full decode, so truncated JPEG/PNG files and headers declaring
+huge sizes are caught) at the size the adapter reported.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import FrameError
-from ..frames import FrameRef, load_rgb
+from ..frames import FrameRef, box_fault, load_rgb
 from .base import CheckInputBackend
 
 
@@ -19,6 +20,7 @@ class CheckInput(CheckInputBackend):
     """Per-frame checks of K, the head box and the image file."""
 
     name = "check"
+    version = "2"  # 2: inverted and empty head boxes fail here, with the reason
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
@@ -29,9 +31,10 @@ class CheckInput(CheckInputBackend):
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise FrameError(f"intrinsics K of frame {frame.id} are invalid ({np.asarray(frame.K).tolist()}): "
                              "need a finite 3x3 matrix with fx, fy > 0; check the dataset's intrinsics file")
-        if not np.all(np.isfinite(frame.head_box)):
-            raise FrameError(f"head box of frame {frame.id} is not finite ({frame.head_box.tolist()}); "
-                             "check the annotation row")
+        fault = box_fault(frame.head_box)
+        if fault:
+            raise FrameError(f"head box of frame {frame.id} {fault}: a box is x1 < x2, y1 < y2 in pixels; fix "
+                             f"{frame.annotation or 'its annotation row'}")
         if self.p.decode_image:
             rgb = load_rgb(frame.image_path)
             H, W = rgb.shape[:2]

@@ -17,9 +17,11 @@ import numpy as np
 
 from ..estimators.blazepose import BlazePoseOptions, place_landmarks
 from ..estimators.blazepose_smpl import to_smpl_head30
+from ..errors import FrameError
 from ..frames import DepthMap, FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
+from ..units import BODY_RANGE_M, LENGTH_UNITS, METRES_PER_UNIT, LengthUnits, check_plausible, pose_size, to_metres
 from .base import PoseBackend, ProcessEstimator
 from .oracle_noise import frame_rng, noisy_pose
 from .precomputed import precomputed_table
@@ -27,22 +29,40 @@ from .truth import TruthParams, check_truth_file, truth_frame
 
 
 class PrecomputedPose(PoseBackend):
-    """Poses from `file` (HDF5/npz: frame_id (N,), pose (N, 30, 3) metres)."""
+    """Poses from `file` (HDF5/npz: frame_id (N,), pose (N, 30, 3) in `units`), converted to metres.
+    A pose whose size (largest joint-to-joint distance) is not a person's (`units.BODY_RANGE_M`:
+    a file in another unit) is refused: the first one's before any work, each frame's on its own."""
 
     name = "precomputed"
+    version = "2"  # 2: units, and the size check
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, pose)")  # HDF5/npz: frame_id (N,) str, pose (N, 30, 3) metres
+        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, pose)")  # HDF5/npz: frame_id (N,) str, pose (N, 30, 3) in `units`
+        units: LengthUnits = "m"  # the stored joints' unit: m, cm or mm (converted to metres)
 
     def _table(self):
         return precomputed_table(self.p.file, "pose", (N_JOINTS, 3), "stages.pose.params.file")
 
+    def _metres(self, frame_id: str, raw: np.ndarray) -> np.ndarray:
+        """The frame's pose in metres; FrameError when its size is not a person's."""
+        if np.isinf(raw).any():
+            raise FrameError(f"pose of frame {frame_id} in {self.p.file} has infinite values; write NaN for a joint "
+                             "the estimator did not find")
+        size = pose_size(raw)
+        if np.isfinite(size):
+            check_plausible(np.float32([size]) * np.float32(METRES_PER_UNIT[self.p.units]), np.float32([size]),
+                            self.p.units, BODY_RANGE_M, f"pose of frame {frame_id} in {self.p.file}",
+                            f"stages.pose.params.units (now {self.p.units})", "person size", candidates=LENGTH_UNITS)
+        return to_metres(raw, self.p.units)
+
     def check(self) -> None:
-        self._table()
+        """Before any work: the file's layout, and the units on the first pose with two finite joints
+        (among the first ten)."""
+        self._table().check_first(self._metres, lambda raw: bool(np.isfinite(pose_size(raw))))
 
     def pose(self, frame: FrameRef) -> np.ndarray:
-        return self._table().get(frame.id)
+        return self._metres(frame.id, self._table().get(frame.id))
 
 
 class OraclePose(PoseBackend):

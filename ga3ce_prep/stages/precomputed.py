@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -62,6 +62,19 @@ class PrecomputedTable:
         except Exception:
             f.close()
             raise
+
+    def check_first(self, convert: Callable[[str, np.ndarray], Any], usable: Callable[[np.ndarray], bool],
+                    n: int = 10) -> None:
+        """Before any work: `convert(frame_id, row)` on the first `usable` row among the first `n`; its
+        FrameError (a file in the wrong unit, say) becomes a ConfigError that stops the run."""
+        for fid in self.ids[:n]:
+            row = self.get(fid)
+            if usable(row):
+                try:
+                    convert(fid, row)
+                except FrameError as e:
+                    raise ConfigError(str(e)) from None
+                return
 
     def get(self, frame_id: str) -> np.ndarray:
         """The frame's row as float32; FrameError if the file does not hold the frame."""

@@ -47,7 +47,33 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"cannot read checkpoint {path}: {e}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a ga3ce-prep checkpoint (format {FORMAT})")
+    check_model(ckpt, path)
     return ckpt
+
+
+def check_model(ckpt: dict[str, Any], path: str | Path) -> None:
+    """CheckpointError naming the file and the first difference unless the checkpoint's weights
+    are exactly those of the model its configuration (`config.model`) describes: a checkpoint
+    whose weights come from another model configuration (edited, assembled from two runs, or
+    written by another version) is refused before any work."""
+    fix = "use the best.pt or last.pt its run folder wrote, or retrain with the configuration you want"
+    try:
+        cfg = ModelConfig.from_dict(ckpt["config"]["model"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: config.model is not a GA3CE model configuration ({e}); {fix}") from None
+    weights = ckpt.get("model")
+    if not isinstance(weights, dict):
+        raise CheckpointError(f"{path}: 'model' holds a {type(weights).__name__}, not the model's weights; {fix}")
+    want = {k: tuple(v.shape) for k, v in GA3CE(cfg).state_dict().items()}
+    have = {k: tuple(getattr(v, "shape", ())) for k, v in weights.items()}
+    diff = ([f"weight {k} is missing" for k in sorted(want.keys() - have.keys())]
+            + [f"weight {k} is not in this model" for k in sorted(have.keys() - want.keys())]
+            + [f"weight {k} has shape {list(have[k])}, the configuration needs {list(want[k])}"
+               for k in sorted(want.keys() & have.keys()) if want[k] != have[k]])
+    if diff:
+        raise CheckpointError(f"{path}: the weights are not those of its config.model ({diff[0]}"
+                              f"{f'; {len(diff) - 1} more differences' if len(diff) > 1 else ''}): they come from "
+                              f"another model configuration; {fix}")
 
 
 def config_differences(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:

@@ -18,8 +18,9 @@ from click.core import ParameterSource
 from ..errors import ConfigError
 from ..model import ENCODINGS, ROTATIONS, ModelConfig
 from ..params import field_docs
-from ..store import open_store
+from ..store import ContextStore, open_store
 from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
+from .dataset import ContextDataset
 from .evaluate import evaluate as run_eval, format_eval_table
 from .profiles import PROFILES, DatasetProfile
 from .report import report as run_report
@@ -52,6 +53,19 @@ def _model_sets(items: tuple[str, ...]) -> dict[str, Any]:
         except json.JSONDecodeError:
             out[key] = raw
     return out
+
+
+def _checked_split(store: str, split: str) -> ContextStore:
+    """The store, once `--split` is known to it and has frames to evaluate (a view prior and
+    ground-truth gaze); ConfigError naming the store, the split and the splits it has otherwise."""
+    st = open_store(store)
+    there = f"its splits: {', '.join(st.split_names) or 'none'}"
+    if split not in st.split_names:
+        raise ConfigError(f"--split {split}: store {st.path} has no split {split!r}; {there}")
+    if not len(ContextDataset(st, split)):
+        raise ConfigError(f"--split {split}: store {st.path} has no {split} frame with a view prior and ground-truth "
+                          f"gaze to evaluate; choose another split ({there}) or a store whose dataset annotates gaze")
+    return st
 
 
 def _help(cls: type, name: str) -> str:
@@ -166,7 +180,7 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
     gaze-following modules").
     """
     _log_setup()
-    r = run_eval(store, checkpoint, split=split, force=force, device=device, batch_size=batch_size,
+    r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device, batch_size=batch_size,
                  snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
                  threads=threads, gfm=gfm, data=data, gfm_batch_size=gfm_batch_size)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
@@ -196,6 +210,7 @@ def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except (TypeError, ValueError) as e:
         raise ConfigError(f"ablate options: {e}") from None
+    _checked_split(store, split)
     base = _train_config(store, out, model, **recipe)
     summary = run_ablate(base, out, rows=[r.strip() for r in rows.split(",")] if rows else None,
                          seeds=seed_list, split=split, force=force)
