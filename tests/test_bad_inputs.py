@@ -365,7 +365,7 @@ def test_limit_zero_is_one_line(synth_world, tmp_path, ga3ce):
             "--limit 0: the number of frames to process must be at least 1", "leave --limit out")
 
 
-def test_a_damaged_cache_entry_is_one_line_and_the_rerun_recomputes_it(synth_world, reference, tmp_path, ga3ce):
+def test_a_damaged_cache_entry_is_recomputed_in_the_same_rerun(synth_world, reference, tmp_path, ga3ce):
     out = tmp_path / "s.zarr"
     assert _run(ga3ce, synth_world, out)[0] == 0
     shutil.rmtree(out)
@@ -373,11 +373,8 @@ def test_a_damaged_cache_entry_is_one_line_and_the_rerun_recomputes_it(synth_wor
     z = dict(np.load(entry))
     del z["ok"]
     np.savez(entry, **z)                                                 # readable, but not an entry
-    refused(_run(ga3ce, synth_world, out, "stages.view.params.seed=1"), None,
-            f"cache entry {entry} (stage input, shard 0) vanished or was damaged (then removed)",
-            "rerun the same command to recompute it")
-    assert not out.exists() and not entry.exists()
-    assert _run(ga3ce, synth_world, out)[0] == 0
+    assert _run(ga3ce, synth_world, out)[0] == 0                         # removed and computed again
+    assert "ok" in np.load(entry).files
     for name in ("id", "head_pos", "pose", "view", "obj_count"):
         np.testing.assert_array_equal(open_store(out).frames[name], reference.frames[name], err_msg=name)
 
