@@ -3,13 +3,15 @@
 Layout (N frames, M objects, F failure records)::
 
     store.zarr/
-      frames/{id, split, scene, K, image_size, head_box, body_box, head_pos, pose, view, gaze,
-              eye, gaze_target, obj_start, obj_count}      (N, ...)
+      frames/{id, split, scene, K, image_size, head_box, body_box, head_pos, head_source, pose,
+              view, view_source, gaze, eye, gaze_target, obj_start, obj_count}      (N, ...)
       objects/{xyz, area, score}                           (M, ...)  CSR: frame i owns
                                                                      objects[obj_start[i]:][:obj_count[i]]
       failures/{frame_id, stage, error, message, action}   (F,)      action: "dropped" | "degraded"
 
-`split` and `scene` are int codes; their names are in the array's attrs["names"]. Camera frame,
+`split`, `scene`, `head_source` and `view_source` are int codes; their names are in the array's
+attrs["names"] (a `*_source` names the way each frame's value came about: the stage backend's
+`sources`). Camera frame,
 metres, x right, y down, z forward. Unknown values are NaN. The root attrs hold `schema_version`,
 the dataset, the pipeline and its hash, per-stage provenance and the package version
 (schemas/store.schema.json). Arrays are chunked along the first axis only (Zstd).
@@ -33,8 +35,10 @@ from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
 
-# 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source
-SCHEMA_VERSION = "1.2"
+# 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source;
+# 1.3: frames/head_source
+SCHEMA_VERSION = "1.3"
+SOURCE_STAGES: tuple[str, ...] = ("head", "view")  # stages whose per-frame source is stored (frames/<stage>_source)
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
@@ -47,6 +51,7 @@ FRAME_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "head_box": (np.float32, (4,)),
     "body_box": (np.float32, (4,)),
     "head_pos": (np.float32, (3,)),
+    "head_source": (np.int8, ()),  # which way t_object came about; names in the array's attrs["names"]
     "pose": (np.float32, (N_JOINTS, 3)),
     "view": (np.float32, (3,)),
     "view_source": (np.int8, ()),  # which way v came about; names in the array's attrs["names"]
@@ -157,13 +162,15 @@ class StoreWriter:
         for name in FAILURE_ARRAYS:
             self._push(f"failures/{name}", self._coerce(FAILURE_ARRAYS, f"failures/{name}", name, failures[name], n))
 
-    def close(self, attrs: dict[str, Any], view_sources: tuple[str, ...] = ("view",)) -> None:
+    def close(self, attrs: dict[str, Any], sources: dict[str, tuple[str, ...]] | None = None) -> None:
         """Flush every buffer and write the root attributes (schema_version is set here).
-        view_sources: the names behind frames/view_source's codes (the view backend's sources)."""
+        sources: per stage of SOURCE_STAGES the names behind frames/<stage>_source's codes (its
+        backend's sources; default: the stage's name alone)."""
         for key in self.arrays:
             self._push(key, None, force=True)
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
-        self.arrays["frames/view_source"].attrs["names"] = list(view_sources)
+        for stage in SOURCE_STAGES:
+            self.arrays[f"frames/{stage}_source"].attrs["names"] = list((sources or {}).get(stage, (stage,)))
         attrs = {**attrs, "schema_version": SCHEMA_VERSION}
         validate_store_attrs(attrs)
         self.root.attrs.update(attrs)
@@ -184,7 +191,8 @@ def validate_store_attrs(attrs: dict[str, Any]) -> None:
 @dataclass
 class ContextStore:
     """A store loaded into memory: `frames[name]` (N, ...), `objects[name]` (M, ...),
-    `failures[name]` (F,), root `attrs`, and the names behind the split and scene codes."""
+    `failures[name]` (F,), root `attrs`, and the names behind the split, scene and source codes
+    (`source_names[stage]`: frames/<stage>_source's, for the stages of SOURCE_STAGES the store has)."""
 
     path: str
     attrs: dict[str, Any]
@@ -193,6 +201,7 @@ class ContextStore:
     failures: dict[str, np.ndarray]
     split_names: list[str] = field(default_factory=list)
     scene_names: list[str] = field(default_factory=list)
+    source_names: dict[str, list[str]] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.frames["id"])
@@ -255,4 +264,6 @@ def open_store(path: str | Path) -> ContextStore:
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
                         failures=groups["failures"],
                         split_names=list(root["frames/split"].attrs.get("names", SPLITS)),
-                        scene_names=list(root["frames/scene"].attrs.get("names", [])))
+                        scene_names=list(root["frames/scene"].attrs.get("names", [])),
+                        source_names={st: list(root[f"frames/{st}_source"].attrs.get("names", [])) for st in SOURCE_STAGES
+                                      if f"{st}_source" in groups["frames"]})

@@ -29,7 +29,7 @@ from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
-from ..store import SCHEMA_VERSION
+from ..store import SCHEMA_VERSION, SOURCE_STAGES
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, finalize
@@ -149,10 +149,10 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         reports, compute_seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
         t_fin = time.perf_counter()
-        view = conf.stages["view"]
-        view_sources = backend_class("view", view.backend).sources or (view.backend,)
+        sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
+                   for st in SOURCE_STAGES}
         counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                   view_sources, progress=progress)
+                                   sources, progress=progress)
         fin_seconds = time.perf_counter() - t_fin
     return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
                       finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
