@@ -206,9 +206,9 @@ def test_bad_inputs_become_failure_records_and_other_frames_are_intact(synth_wor
     assert len(f["frame_id"]) == 4
     head_source = dict(zip(s.frames["id"], np.asarray(s.source_names["head"])[s.frames["head_source"]]))
     for fid, kind in broken.items():
-        if kind in ("ok", "invalid_head_depth"):  # no measured depth near the head: the completed depth's
+        if kind in ("ok", "invalid_head_depth"):  # no measured depth near the head: the pose's head
             assert fid not in got
-            assert head_source[fid] == ("measured" if kind == "ok" else "completed")
+            assert head_source[fid] == ("measured" if kind == "ok" else "pose_depth")
             continue
         stage, err, frag = EXPECT[kind]
         assert got[fid][:2] == (stage, err), (fid, got[fid])
