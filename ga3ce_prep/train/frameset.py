@@ -109,6 +109,11 @@ def scored_frames(store: ContextStore, split: str, protocol: str = "all", data: 
     row_of = {str(fid): r for r, fid in enumerate(ids.tolist())}
     frames, source = _dataset_frames(store, data)
     left = {int(r): reason for reason, rows in ds.left_out.items() for r in rows.tolist()}
+    fail = store.failures
+    dropped: dict[str, str] = {}  # frame id -> its first dropping failure (records come in stage order)
+    for fid, stage, err, action in zip(*(np.asarray(fail.get(k, [])).tolist() for k in ("frame_id", "stage", "error", "action"))):
+        if action == "dropped":
+            dropped.setdefault(fid, f"dropped by the {stage} stage ({err})")
     scored: list[int] = []
     unscored: dict[str, list[str]] = defaultdict(list)
     if frames is None:
@@ -118,10 +123,11 @@ def scored_frames(store: ContextStore, split: str, protocol: str = "all", data: 
         log.warning("%s: %s; the store's frames of the split stand for its rows", store.path, source)
         rows = store.indices(split)
         for r in rows.tolist():
-            (unscored[left[r]].append(str(ids[r])) if r in left else scored.append(r))
-        fail = store.failures
-        n_dropped = len(set(np.asarray(fail.get("frame_id", []))[np.asarray(fail.get("action", [])) == "dropped"].tolist()))
-        return ScoredFrames(protocol, f"the store's frames ({source}); the pipeline dropped {n_dropped} frames "
+            if r in left:
+                unscored[left[r]].append(str(ids[r]))
+            else:
+                scored.append(r)
+        return ScoredFrames(protocol, f"the store's frames ({source}); the pipeline dropped {len(dropped)} frames "
                             "of all splits (failures table)", np.array(scored, np.int64), len(rows), len(rows),
                             dict(unscored))
     limit = (store.attrs.get("run") or {}).get("limit")
@@ -131,11 +137,6 @@ def scored_frames(store: ContextStore, split: str, protocol: str = "all", data: 
     chosen = split_frames
     if protocol == "windows":
         chosen, window_front = gafa_windows(split_frames)
-    fail = store.failures
-    dropped = {}
-    for fid, stage, err, action in zip(*(fail.get(k, np.zeros(0)).tolist() for k in ("frame_id", "stage", "error", "action"))):
-        if action == "dropped":
-            dropped.setdefault(fid, f"dropped by the {stage} stage ({err})")
     keep = []
     for k, f in enumerate(chosen):
         r = row_of.get(f.id)
