@@ -39,13 +39,10 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
 def find_frame_ref(store: ContextStore, frame_id: str, data: str | Path | None = None) -> FrameRef | None:
     """The dataset's FrameRef for frame_id (re-opens the dataset the store was made from, or
     `data`), or None if the dataset cannot be opened."""
-    from .datasets import open_dataset
+    from .datasets import open_store_dataset
 
-    ds = store.attrs.get("dataset", {})
-    root = data or ds.get("root")
     try:
-        adapter = open_dataset(ds.get("name", ""), root, **(ds.get("options") or {}))
-        for f in adapter.frames():
+        for f in open_store_dataset(store.attrs.get("dataset", {}), data).frames():
             if f.id == frame_id:
                 return f
     except (Ga3ceError, KeyError, OSError, TypeError):

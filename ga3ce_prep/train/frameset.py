@@ -84,13 +84,12 @@ def gafa_windows(frames: list[FrameRef], interval: int = 7) -> tuple[list[FrameR
 
 def _dataset_frames(store: ContextStore, data: str | Path | None) -> tuple[list[FrameRef] | None, str]:
     """The frames the run read (its adapter's, the first --limit of them), or None and why not."""
-    from ..datasets import open_dataset
+    from ..datasets import open_store_dataset
 
     ds = store.attrs.get("dataset", {})
-    root = Path(data) if data is not None else Path(str(ds.get("root", "")))
-    where = f"the {ds.get('name')} dataset at {root}"
+    where = f"the {ds.get('name')} dataset at {data or ds.get('root')}"
     try:
-        frames = list(open_dataset(str(ds.get("name")), root, **(ds.get("options") or {})).frames())
+        frames = list(open_store_dataset(ds, data).frames())
     except (Ga3ceError, KeyError, TypeError, ValueError, OSError) as e:
         return None, f"{where} cannot be read ({e})"
     return frames, where
