@@ -198,3 +198,20 @@ def test_recipe_batch_size_per_dataset_and_gafa_ablation_labels(gafa_store):
     assert "appearance only: v (ours)" in t and "appearance only (v)" not in t
     assert "GAFA's own gaze module (22.9), not a view prior" in t
     assert "appearance only (v)" in format_ablation_table({**summary, "paper_column": "gfie", "appearance_is_v": True})
+
+
+def test_gafa_adapter_marks_the_val_tail_and_keeps_the_sessions_option(gafa_store):
+    world = gafa_store[0]
+    frames = list(open_dataset("gafa", world).frames())
+    train = [f for f in frames if f.split != "test"]
+    numbers = {s: np.array([f.index for f in train if f.sequence == s]) for s in dict.fromkeys(f.sequence for f in train)}
+    starts = gafa_val_starts(numbers, seed=0)
+    position = {f.id: int(np.searchsorted(numbers[f.sequence], f.index)) for f in train}
+    assert [f.split for f in train] == ["val" if position[f.id] >= starts[f.sequence] else "train" for f in train]
+    n_val = sum(f.split == "val" for f in train)
+    assert 0 < n_val < 0.2 * len(train)                                    # a tail, about 10% of the windows
+    assert sum(0 < starts[s] < len(numbers[s]) for s in numbers) <= 1       # the cut falls inside one sequence at most
+    other = {f.id: f.split for f in open_dataset("gafa", world, val_seed=1).frames()}
+    assert other != {f.id: f.split for f in frames}                         # another seed, another tail
+    by_session = {f.scene: f.split for f in open_dataset("gafa", world, val="sessions").frames() if f.split == "val"}
+    assert set(by_session) == {"kitchen/1015_4", "courtyard/005"}
