@@ -201,29 +201,49 @@ def object_positions(depth: np.ndarray, K: np.ndarray, masks: np.ndarray,
                            index=index.astype(np.int64), n_dropped=n_dropped)
 
 
-def head_position(depth: np.ndarray, K: np.ndarray, head_box: np.ndarray, valid: np.ndarray | None = None, *,
-                  window_fracs: tuple[float, ...], min_points: int) -> np.ndarray:
-    """t_object: the head box centre back-projected at the median valid depth of a small window.
-
-    The window is a square of side window_frac * min(box w, box h) (at least 3 px) around the box
-    centre, clipped to the image; if it has fewer than `min_points` valid pixels the next, larger
-    fraction is tried. Returns (3,) float32 metres. Raises FrameError when the box is outside the
-    image or no window has valid depth. The head stage's defaults: `stages.head.DepthHead.Params`.
-    """
-    H, W = depth.shape
+def head_box_centre(head_box: np.ndarray, width: int, height: int) -> tuple[float, float, float]:
+    """(u, v, side) of a head box x1, y1, x2, y2 (4,) pixels: its centre and its shorter side, px.
+    Raises FrameError when the box is not finite or empty, or its centre lies outside the
+    width x height image."""
     x1, y1, x2, y2 = (float(c) for c in head_box)
     if not np.all(np.isfinite([x1, y1, x2, y2])) or x2 <= x1 or y2 <= y1:
         raise FrameError(f"invalid head box {list(head_box)}")
     cu, cv = 0.5 * (x1 + x2), 0.5 * (y1 + y2)
-    if not (0 <= cu < W and 0 <= cv < H):
-        raise FrameError(f"head box centre ({cu:.1f}, {cv:.1f}) lies outside the {W}x{H} image")
-    ok = (depth > 0) if valid is None else (valid & (depth > 0))
-    side = min(x2 - x1, y2 - y1)
+    if not (0 <= cu < width and 0 <= cv < height):
+        raise FrameError(f"head box centre ({cu:.1f}, {cv:.1f}) lies outside the {width}x{height} image")
+    return cu, cv, min(x2 - x1, y2 - y1)
+
+
+def window_median_depth(depth: np.ndarray, ok: np.ndarray, cu: float, cv: float, side: float, *,
+                        window_fracs: tuple[float, ...], min_points: int) -> float | None:
+    """The median depth (metres) of the pixels `ok` (H, W) bool in a square window of side
+    window_frac * side (at least 3 px) around pixel (cu, cv), clipped to the image; each fraction
+    in turn until a window holds `min_points` such pixels. None when none does."""
+    H, W = depth.shape
     for frac in window_fracs:
         r = max(1.5, 0.5 * frac * side)
         u0, u1 = int(max(0, np.floor(cu - r))), int(min(W, np.ceil(cu + r)))
         v0, v1 = int(max(0, np.floor(cv - r))), int(min(H, np.ceil(cv + r)))
         win = depth[v0:v1, u0:u1][ok[v0:v1, u0:u1]]
         if win.size >= min_points:
-            return back_project(cu, cv, float(np.median(win)), K).astype(np.float32)
-    raise FrameError(f"no valid depth in the head box {[round(c, 1) for c in (x1, y1, x2, y2)]}")
+            return float(np.median(win))
+    return None
+
+
+def head_position(depth: np.ndarray, K: np.ndarray, head_box: np.ndarray, valid: np.ndarray | None = None, *,
+                  window_fracs: tuple[float, ...], min_points: int) -> np.ndarray:
+    """t_object: the head box centre back-projected at the median valid depth of a small window.
+
+    The window is a square of side window_frac * min(box w, box h) (at least 3 px) around the box
+    centre, clipped to the image; if it has fewer than `min_points` valid pixels the next, larger
+    fraction is tried (`window_median_depth`). Returns (3,) float32 metres. Raises FrameError when
+    the box is outside the image or no window has valid depth. The head stage's defaults and its
+    fallbacks when none has: `stages.head.DepthHead`.
+    """
+    H, W = depth.shape
+    cu, cv, side = head_box_centre(head_box, W, H)
+    ok = (depth > 0) if valid is None else (valid & (depth > 0))
+    z = window_median_depth(depth, ok, cu, cv, side, window_fracs=window_fracs, min_points=min_points)
+    if z is None:
+        raise FrameError(f"no valid depth in the head box {[round(float(c), 1) for c in head_box]}")
+    return back_project(cu, cv, z, K).astype(np.float32)

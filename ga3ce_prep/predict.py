@@ -89,7 +89,8 @@ class Prediction:
         src = f"   from {self.sources['view']}" if "view" in self.sources else ""
         lines = [row("view prior v", self.view, src), row("gaze g", self.gaze)]
         h = self.head_pos
-        lines.append(f"{'head t_object':<14} ({h[0]:+.3f}, {h[1]:+.3f}, {h[2]:+.3f}) m")
+        hsrc = f"   depth from {self.sources['head']}" if "head" in self.sources else ""
+        lines.append(f"{'head t_object':<14} ({h[0]:+.3f}, {h[1]:+.3f}, {h[2]:+.3f}) m{hsrc}")
         lines.append(f"{'pose':<14} {int(np.isfinite(self.pose).all(1).sum())} of {N_JOINTS} joints")
         if len(self.objects):
             dist = np.linalg.norm(self.objects - h, axis=1)

@@ -3,13 +3,15 @@
 Layout (N frames, M objects, F failure records)::
 
     store.zarr/
-      frames/{id, split, scene, K, image_size, head_box, body_box, head_pos, pose, view, gaze,
-              eye, gaze_target, obj_start, obj_count}      (N, ...)
+      frames/{id, split, scene, K, image_size, head_box, body_box, head_pos, head_source, pose,
+              view, view_source, gaze, eye, gaze_target, obj_start, obj_count}      (N, ...)
       objects/{xyz, area, score}                           (M, ...)  CSR: frame i owns
                                                                      objects[obj_start[i]:][:obj_count[i]]
       failures/{frame_id, stage, error, message, action}   (F,)      action: "dropped" | "degraded"
 
-`split` and `scene` are int codes; their names are in the array's attrs["names"]. Camera frame,
+`split`, `scene`, `head_source` and `view_source` are int codes; their names are in the array's
+attrs["names"] (a `*_source` names the way each frame's value came about: the stage backend's
+`sources`). Camera frame,
 metres, x right, y down, z forward. Unknown values are NaN. The root attrs hold `schema_version`,
 the dataset, the pipeline and its hash, per-stage provenance, the package version
 (schemas/store.schema.json) and the integrity record: the size and SHA-256 of every other file of
@@ -37,8 +39,9 @@ from .frames import SPLITS
 from .skeleton import N_JOINTS
 
 # 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source;
-# 1.3: attrs["integrity"]
-SCHEMA_VERSION = "1.3"
+# 1.3: attrs["integrity"]; 1.4: frames/head_source
+SCHEMA_VERSION = "1.4"
+SOURCE_STAGES: tuple[str, ...] = ("head", "view")  # stages whose per-frame source is stored (frames/<stage>_source)
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
@@ -51,6 +54,7 @@ FRAME_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "head_box": (np.float32, (4,)),
     "body_box": (np.float32, (4,)),
     "head_pos": (np.float32, (3,)),
+    "head_source": (np.int8, ()),  # which way t_object came about; names in the array's attrs["names"]
     "pose": (np.float32, (N_JOINTS, 3)),
     "view": (np.float32, (3,)),
     "view_source": (np.int8, ()),  # which way v came about; names in the array's attrs["names"]
@@ -164,13 +168,15 @@ class StoreWriter:
         for name in FAILURE_ARRAYS:
             self._push(f"failures/{name}", self._coerce(FAILURE_ARRAYS, f"failures/{name}", name, failures[name], n))
 
-    def close(self, attrs: dict[str, Any], view_sources: tuple[str, ...] = ("view",)) -> None:
+    def close(self, attrs: dict[str, Any], sources: dict[str, tuple[str, ...]] | None = None) -> None:
         """Flush every buffer and write the root attributes (schema_version is set here).
-        view_sources: the names behind frames/view_source's codes (the view backend's sources)."""
+        sources: per stage of SOURCE_STAGES the names behind frames/<stage>_source's codes (its
+        backend's sources; default: the stage's name alone)."""
         for key in self.arrays:
             self._push(key, None, force=True)
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
-        self.arrays["frames/view_source"].attrs["names"] = list(view_sources)
+        for stage in SOURCE_STAGES:
+            self.arrays[f"frames/{stage}_source"].attrs["names"] = list((sources or {}).get(stage, (stage,)))
         attrs = json.loads(json.dumps({**attrs, "schema_version": SCHEMA_VERSION}))  # as they will read back
         attrs["integrity"] = {"algorithm": "sha256", "files": file_digests(self.path)}
         attrs["integrity"]["attributes"] = _attributes_digest(attrs)
@@ -301,7 +307,8 @@ def validate_store_attrs(attrs: dict[str, Any]) -> None:
 @dataclass
 class ContextStore:
     """A store loaded into memory: `frames[name]` (N, ...), `objects[name]` (M, ...),
-    `failures[name]` (F,), root `attrs`, and the names behind the split and scene codes."""
+    `failures[name]` (F,), root `attrs`, and the names behind the split, scene and source codes
+    (`source_names[stage]`: frames/<stage>_source's, for the stages of SOURCE_STAGES the store has)."""
 
     path: str
     attrs: dict[str, Any]
@@ -310,6 +317,7 @@ class ContextStore:
     failures: dict[str, np.ndarray]
     split_names: list[str] = field(default_factory=list)
     scene_names: list[str] = field(default_factory=list)
+    source_names: dict[str, list[str]] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.frames["id"])
@@ -378,10 +386,16 @@ def open_store(path: str | Path, verify: bool = False) -> ContextStore:
         split_names = list(root["frames/split"].attrs.get("names", SPLITS))
         key = "frames/scene"
         scene_names = list(root["frames/scene"].attrs.get("names", []))
+        source_names = {}
+        for st in SOURCE_STAGES:
+            if f"{st}_source" in groups["frames"]:
+                key = f"frames/{st}_source"
+                source_names[st] = list(root[key].attrs.get("names", []))
     except Exception as e:  # noqa: BLE001 - whatever a damaged chunk or zarr.json makes zarr raise
         raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
-                        failures=groups["failures"], split_names=split_names, scene_names=scene_names)
+                        failures=groups["failures"], split_names=split_names, scene_names=scene_names,
+                        source_names=source_names)
 
 
 def _unreadable(path: str, key: str, error: Exception) -> StoreError:

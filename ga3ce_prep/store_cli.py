@@ -52,6 +52,10 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
     gaze_ok = int(np.isfinite(fr["gaze"]).all(1).sum())
     pose_ok = int(np.isfinite(fr["pose"]).all((1, 2)).sum())
     lines.append(f"ground truth gaze in {gaze_ok}/{n} frames; pose complete in {pose_ok}/{n}")
+    for stage, names in s.source_names.items():
+        used = Counter(fr[f"{stage}_source"].tolist())
+        lines.append(f"{stage + ' source':<12} " + ", ".join(f"{names[k] if 0 <= k < len(names) else k} {c}"
+                                                          for k, c in sorted(used.items())))
     lines.append("stages")
     for stage, p in a.get("stages", {}).items():
         params = ", ".join(f"{k}={v}" for k, v in (p.get("params") or {}).items())

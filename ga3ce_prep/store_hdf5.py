@@ -1,8 +1,8 @@
 """`export --format hdf5`: the store's arrays in one HDF5 file, for trainers that read HDF5.
 
 Same names, shapes and dtypes as the Zarr store (docs/store.md): groups `frames/`, `objects/`,
-`failures/`; strings as UTF-8 variable-length strings; `frames/split` and `frames/scene` carry their
-names in the attribute "names" (JSON list); the root attribute "attrs" holds the store's root
+`failures/`; strings as UTF-8 variable-length strings; `frames/split`, `frames/scene` and the
+`frames/*_source` arrays carry their names in the attribute "names" (JSON list); the root attribute "attrs" holds the store's root
 attributes as JSON. Written to a temporary file and renamed into place.
 """
 from __future__ import annotations
@@ -36,6 +36,8 @@ def export_hdf5(store: str | Path, out: str | Path) -> Path:
                         g.create_dataset(name, data=a, compression="gzip" if a.size > 4096 else None)
             f["frames/split"].attrs["names"] = json.dumps(s.split_names)
             f["frames/scene"].attrs["names"] = json.dumps(s.scene_names)
+            for stage, names in s.source_names.items():
+                f[f"frames/{stage}_source"].attrs["names"] = json.dumps(names)
             f.attrs["attrs"] = json.dumps(s.attrs)
             f.attrs["schema_version"] = str(s.attrs.get("schema_version", ""))
         os.replace(tmp, out)

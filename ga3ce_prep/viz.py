@@ -41,15 +41,13 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
 
 def find_frame_refs(store: ContextStore, frame_ids: Iterable[str], data: str | Path | None = None) -> dict[str, FrameRef]:
     """id -> the dataset's FrameRef for each of frame_ids the dataset has, re-opening the dataset
-    the store was made from (its provenance: format, root, options) or the one at `data`; one pass
-    over the adapter's frames, stopping once every id is found. Raises what opening the dataset
-    raises (Ga3ceError, KeyError for an unknown format, OSError)."""
-    from .datasets import open_dataset
+    the store was made from (`datasets.open_store_dataset`: its provenance, or the one at `data`);
+    one pass over the adapter's frames, stopping once every id is found. Raises what opening the
+    dataset raises (Ga3ceError, KeyError for an unknown format, OSError)."""
+    from .datasets import open_store_dataset
 
-    ds = store.attrs.get("dataset", {})
-    adapter = open_dataset(ds.get("name", ""), data or ds.get("root"), **(ds.get("options") or {}))
     wanted, out = set(frame_ids), {}
-    for f in adapter.frames():
+    for f in open_store_dataset(store.attrs.get("dataset", {}), data).frames():
         if f.id in wanted:
             out[f.id] = f
             if len(out) == len(wanted):

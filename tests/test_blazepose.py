@@ -499,7 +499,7 @@ def test_pipeline_runs_blazepose_with_the_depth_map(synth_world, tmp_path):
     2.2 m)."""
     conf = load_pipeline("synthetic", synth_world, overrides=BLAZEPOSE, check_files=False)
     assert conf.upstream["pose"] == ("input", "depth")
-    assert task_stages(conf.upstream)["geometry"] == ("depth", "objects", "head", "pose")
+    assert task_stages(conf.upstream)["geometry"] == ("depth", "objects", "pose", "head")  # the head reads the pose
     poses = {}
     for refine in (True, False):
         out = tmp_path / f"refine_{refine}.zarr"

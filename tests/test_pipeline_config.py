@@ -23,7 +23,8 @@ def test_bundled_pipelines_are_valid(name, tmp_path):
 
 def test_defaults_are_filled_in_and_data_paths_resolved(tmp_path):
     conf = load_pipeline("synthetic", tmp_path, check_files=False)
-    assert conf.stages["head"].params == {"window_fracs": [0.2, 0.5, 1.0], "min_points": 3}
+    assert conf.stages["head"].params == {"window_fracs": [0.2, 0.5, 1.0], "min_points": 3,
+                                          "fallbacks": ["pose_depth", "pose", "completed"], "joint_depth_offset": 0.05}
     assert conf.stages["view"].params["truth"] == tmp_path.resolve() / "truth.h5"
     assert conf.stages["view"].data_files == {"truth": tmp_path.resolve() / "truth.h5"}
     assert conf.config["stages"]["depth"]["params"]["keep_valid"] is True

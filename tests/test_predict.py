@@ -76,7 +76,7 @@ def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, ch
     d = json.loads(res.output[res.output.index("{"):])
     g = np.array(d["gaze"])
     assert np.linalg.norm(g) == pytest.approx(1, abs=1e-5)
-    assert d["sources"] == {"view": "face"}
+    assert d["sources"] == {"head": "measured", "view": "face"}
     assert len(d["gaze_yaw_pitch_deg"]) == 2
     img = np.asarray(Image.open(out))
     assert img.shape[0] >= 480

@@ -19,7 +19,7 @@ def _block(rng, n, start):
         "id": [f"f{start + i}" for i in range(n)], "split": rng.integers(0, 3, n),
         "scene": np.zeros(n), "K": np.tile(np.eye(3), (n, 1, 1)), "image_size": np.tile([640, 480], (n, 1)),
         "head_box": rng.random((n, 4)), "body_box": rng.random((n, 4)), "head_pos": rng.random((n, 3)),
-        "pose": rng.random((n, 30, 3)), "view": rng.random((n, 3)), "view_source": np.zeros(n, np.int8), "gaze": rng.random((n, 3)),
+        "pose": rng.random((n, 30, 3)), "view": rng.random((n, 3)), "view_source": np.zeros(n, np.int8), "head_source": np.zeros(n, np.int8), "gaze": rng.random((n, 3)),
         "eye": rng.random((n, 3)), "gaze_target": rng.random((n, 3)), "obj_count": counts,
     }
     m = int(counts.sum())

@@ -201,4 +201,9 @@ def test_metrics():
     assert r["front"]["mae3d"] == pytest.approx(45, abs=1e-5)
     assert r["back"]["n"] == 1
     assert r["back"]["mae3d"] == pytest.approx(0, abs=1e-5)
-    assert r["per_scene"]["a"] == {"n": 2, "mae3d": pytest.approx(45, abs=1e-5)}
+    assert r["per_scene"]["a"] == {"n": 2, "mae3d": pytest.approx(45, abs=1e-5), "mae2d": pytest.approx(45, abs=1e-5)}
+    assert r["per_scene"]["b"]["n"] == 1 and np.isnan(r["per_scene"]["b"]["mae2d"])
+    # front/back per window (GAFA): given, not from each frame's own ground truth
+    w = summarize(pred, gt, np.array([0, 0, 1]), ["a", "b"], front=np.array([False, False, True]))
+    assert (w["front"]["n"], w["back"]["n"]) == (1, 2)
+    assert w["front"]["mae3d"] == pytest.approx(0, abs=1e-5) and w["back"]["mae3d"] == pytest.approx(45, abs=1e-5)

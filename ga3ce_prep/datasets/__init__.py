@@ -37,4 +37,12 @@ def open_dataset(name: str, root: str | Path, **options) -> DatasetAdapter:
     return cls(root, **options)
 
 
-__all__ = ["ADAPTERS", "DatasetAdapter", "open_dataset"]
+def open_store_dataset(provenance: dict, data: str | Path | None = None) -> DatasetAdapter:
+    """The adapter of the dataset a store was made from: its provenance (`store.attrs["dataset"]`:
+    name, root, options), with `data` for the root when the dataset has moved. Raises what
+    `open_dataset` raises (Ga3ceError, KeyError for an unknown format, OSError, TypeError)."""
+    return open_dataset(str(provenance.get("name", "")), data or provenance.get("root", ""),
+                        **(provenance.get("options") or {}))
+
+
+__all__ = ["ADAPTERS", "DatasetAdapter", "open_dataset", "open_store_dataset"]

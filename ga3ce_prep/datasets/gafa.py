@@ -1,9 +1,13 @@
 """GAFA raw data (kyotovision-public/dynamic-3d-gaze-from-afar: `README.md`,
 `data/preprocessed/preprocess.py`, `dataloader/gafa.py`).
 
-The split is by session and fixed (eval.py / train.py). GAFA's own validation set is the shuffled
-tail of train (unseeded); ours is deterministic: the two sessions in VAL_SESSIONS. GAFA has no
-depth: a pipeline over it needs a depth estimator (or, for the synthetic world, the oracle).
+The split is by session and fixed (eval.py / train.py). Validation, `val`: "gafa" (default) is
+GAFA's own rule (train.py), seeded: the training sessions shuffled (`val_seed`), their cameras'
+7-frame windows of consecutive raw frames (interval 1, `window_starts`) concatenated, and the last
+10% of the windows are val: the frames from the first val window's first frame on (the cut falls
+inside one camera sequence; GAFA's own run is unseeded). "sessions": the two whole sessions in
+VAL_SESSIONS (our earlier choice). GAFA has no depth: a pipeline over it needs a depth estimator
+(or, for the synthetic world, the oracle).
 
 Per frame the adapter gives: the head box and body box computed from the OpenPose keypoints the way
 GAFA's preprocessing does (head: joints nose, neck, eyes, ears expanded up by 85% and squared;
@@ -39,7 +43,8 @@ TRAIN_SESSIONS: tuple[str, ...] = (
     "library/1026_3", "library/1028_2", "library/1028_5", "lab/1013_1", "lab/1014_1", "kitchen/1022_4",
     "kitchen/1015_4", "living_room/004", "living_room/005", "courtyard/004", "courtyard/005",
 )
-VAL_SESSIONS: tuple[str, ...] = ("kitchen/1015_4", "courtyard/005")  # our choice, taken from train
+VAL_SESSIONS: tuple[str, ...] = ("kitchen/1015_4", "courtyard/005")  # val="sessions": two whole training sessions
+VAL_FRACTION = 0.1  # val="gafa": the last 10% of the training windows (GAFA's train.py)
 # The 17 sessions in an order whose every prefix of 3+ covers train, val and test (for small
 # synthetic datasets).
 SESSION_ORDER: tuple[str, ...] = (
@@ -56,15 +61,52 @@ LAYOUT = """    raw_data/<scene>/<session>/<camera>/<frame:06d>.jpg
     scenes: library, lab, kitchen, living_room, courtyard"""
 
 
-def session_split(session: str) -> str:
-    """"train", "val" or "test" for a "<scene>/<session>" name; KeyError for an unknown session."""
+def session_split(session: str, val_sessions: tuple[str, ...] = ()) -> str:
+    """"train" or "test" (GAFA's published split) for a "<scene>/<session>" name, "val" for one of
+    `val_sessions`; KeyError for an unknown session."""
     if session in TEST_SESSIONS:
         return "test"
-    if session in VAL_SESSIONS:
+    if session in val_sessions:
         return "val"
     if session in TRAIN_SESSIONS:
         return "train"
     raise KeyError(session)
+
+
+def window_starts(index: np.ndarray, interval: int, size: int = WINDOW) -> np.ndarray:
+    """GAFA's windows over one camera sequence (`dataloader/gafa.py`): the positions i (k,) int64
+    in range(0, n - size, interval) of the sequence's frames whose raw frame numbers `index` (n,)
+    (increasing) run consecutively, index[i] + size - 1 == index[i + size - 1]. As in GAFA's code
+    the window ending on the last frame is never used; a sequence of fewer than `size` frames has
+    none. Training uses interval 1 (overlapping windows), evaluation interval 7 (disjoint)."""
+    index = np.asarray(index, np.int64)
+    i = np.arange(0, max(len(index) - size, 0), interval)
+    return i[index[i] + size - 1 == index[i + size - 1]]
+
+
+def gafa_val_starts(numbers: dict[str, np.ndarray], seed: int) -> dict[str, int]:
+    """GAFA's validation cut, seeded: per camera sequence of a training session, the position of
+    its frames from which they are val (0: all; len: none).
+
+    numbers: "<scene>/<session>/<camera>" -> raw frame numbers (n,) of its frames, every
+    training camera (others are ignored). The sessions are shuffled in TRAIN_SESSIONS order with
+    np.random.default_rng(seed), their cameras taken in name order, and windows counted with
+    interval 1 (`window_starts`); the last VAL_FRACTION of them (int() of the count, as GAFA) are
+    val, and so is every frame from the first one's first frame on. No window at all: no val."""
+    order = [TRAIN_SESSIONS[k] for k in np.random.default_rng(seed).permutation(len(TRAIN_SESSIONS))]
+    cams = [(c, numbers[c]) for s in order for c in sorted(numbers) if c.rsplit("/", 1)[0] == s]
+    starts = [window_starts(idx, 1) for _, idx in cams]
+    counts = np.array([len(w) for w in starts], np.int64)
+    out = {c: len(idx) for c, idx in cams}
+    if not counts.sum():
+        return out
+    cut = int(counts.sum() * (1 - VAL_FRACTION))
+    before = 0
+    for (c, idx), w, n in zip(cams, starts, counts):
+        k = cut - before  # windows of this camera that stay train
+        out[c] = len(idx) if k >= n else (0 if k <= 0 else int(w[k]))
+        before += n
+    return out
 
 
 def frame_id(session: str, camera: str, frame: int) -> str:
@@ -140,17 +182,26 @@ def _pick_k(K: np.ndarray, head_pos: np.ndarray, kp: np.ndarray, where: Path) ->
     return K
 
 
+def _valid(kp: np.ndarray) -> np.ndarray:
+    """(N,) bool: the frames GAFA's preprocessing keeps, those with a detected head joint
+    (keypoints (N, 25, >=2) px, 0 = undetected)."""
+    return np.any(kp[:, BODY25_HEAD, :2] != 0, axis=(1, 2))
+
+
 class GAFAAdapter(DatasetAdapter):
     """GAFA raw: per-camera pickles of BODY_25 keypoints and camera-frame gaze/head/chest vectors."""
 
     name = "gafa"
     layout = LAYOUT
 
-    def __init__(self, root: str | Path, k_mode: str = "auto", sessions: tuple[str, ...] | None = None):
+    def __init__(self, root: str | Path, k_mode: str = "auto", sessions: tuple[str, ...] | None = None,
+                 val: str = "gafa", val_seed: int = 0):
         super().__init__(root)
         if (self.root / "raw_data").is_dir():
             self.root = self.root / "raw_data"
         self.k_mode = one_of("k_mode", k_mode, ("auto", "as_is"))
+        val = one_of("val", val, ("gafa", "sessions"))
+        check_option("val_seed", val_seed, isinstance(val_seed, int) and not isinstance(val_seed, bool), "an integer")
         check_option("sessions", sessions, sessions is None or (
             isinstance(sessions, (list, tuple)) and all(isinstance(s, str) for s in sessions)),
             "a list of \"<scene>/<session>\" names or null")
@@ -162,6 +213,7 @@ class GAFAAdapter(DatasetAdapter):
             raise DatasetFormatError(f"{intr}: cannot read cam_mat ({e}); expected a (3, 3) float array") from e
         self.K = check_intrinsics(K, intr)
         self.units = {"eye_xyz": "m", "boxes": BOXES_XYXY + " (from the keypoints)", "decided_by": "the format"}
+        self.val_sessions = VAL_SESSIONS if val == "sessions" else ()
         self.cameras: list[tuple[str, Path]] = []  # (session, pkl path)
         unknown = []
         for scene in SCENES:
@@ -180,6 +232,11 @@ class GAFAAdapter(DatasetAdapter):
         if not self.cameras:
             raise DatasetFormatError(f"gafa: no <scene>/<session>/<camera>.pkl under {self.root}. "
                                      f"Expected layout:\n{LAYOUT}")
+        self.val_start: dict[str, int] = {}  # val="gafa": camera sequence -> first val position
+        if val == "gafa":
+            train = [(f"{s}/{p.stem}", p) for s, p in self.cameras if session_split(s) == "train"]
+            self.val_start = gafa_val_starts({c: np.flatnonzero(_valid(self._load_camera(p)["keypoints2d"]))
+                                              for c, p in train}, val_seed)
 
     def _load_camera(self, pkl: Path) -> dict[str, np.ndarray]:
         """The camera pickle's arrays, checked: a dict with PKL_KEYS, numeric arrays of the expected
@@ -215,16 +272,17 @@ class GAFAAdapter(DatasetAdapter):
             camera = pkl.stem
             cam = self._load_camera(pkl)
             kp = cam["keypoints2d"]
-            valid = np.any(kp[:, BODY25_HEAD, :2] != 0, axis=(1, 2))
+            valid = _valid(kp)
             hb, bb = head_boxes(kp), body_boxes(kp)
             gaze = normalize(cam["gaze_direction"])
             folder = pkl.with_suffix("")
             K = _pick_k(self.K, cam["head_position"], kp, pkl) if self.k_mode == "auto" else self.K
             size = first_image_size([folder / f"{i:06d}.jpg" for i in np.flatnonzero(valid)[:3]])
-            split = session_split(session)
-            for i in np.flatnonzero(valid).tolist():
+            split = session_split(session, self.val_sessions)
+            val_from = self.val_start.get(f"{session}/{camera}", -1)
+            for pos, i in enumerate(np.flatnonzero(valid).tolist()):
                 yield FrameRef(
-                    id=frame_id(session, camera, i), split=split, scene=session,
+                    id=frame_id(session, camera, i), split="val" if 0 <= val_from <= pos else split, scene=session,
                     image_path=folder / f"{i:06d}.jpg", K=K, image_size=size,
                     head_box=hb[i].astype(np.float32), body_box=bb[i].astype(np.float32),
                     eye=cam["head_position"][i].astype(np.float32), gaze=gaze[i].astype(np.float32),

@@ -27,11 +27,10 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError, FrameError, ModelFileError
-from ..geometry import project
 from ..params import param
-from ..skeleton import HEAD_JOINTS, JOINT_NAMES, N_JOINTS
+from ..skeleton import JOINT_NAMES
 from .crops import LookAtCrop, look_at_crop, warp_homography
-from .placement import refine_with_depth
+from .placement import pose_depth_translation
 
 # torch 2.13 deprecates TorchScript (NLF's release format and ours); silenced where we call it
 TORCHSCRIPT_DEPRECATED = dict(action="ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
@@ -182,10 +181,7 @@ def place_with_depth(pose: np.ndarray, K: np.ndarray, depth: np.ndarray, valid: 
     """The pose (30, 3) metres moved to the distance the depth map (H, W) metres measures at its
     joints' pixels (`placement.refine_with_depth`; body joints `joint_depth_offset` metres behind
     the surface, the 6 face joints on it; too few agreeing readings: unchanged)."""
-    offset = np.full(N_JOINTS, float(joint_depth_offset))
-    offset[list(HEAD_JOINTS)] = 0.0
-    T, _ = refine_with_depth(pose, project(pose, K), np.ones(N_JOINTS), K, np.zeros(3), depth, valid, offset)
-    return pose + T
+    return pose + pose_depth_translation(pose, K, depth, valid, joint_depth_offset)[0]
 
 
 def _shapes(args) -> str:

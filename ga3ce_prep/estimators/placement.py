@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FrameError
-from ..geometry import back_project
+from ..geometry import back_project, project
+from ..skeleton import HEAD_JOINTS, N_JOINTS
 
 
 def _normalised(image: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -114,4 +115,16 @@ def refine_with_depth(world: np.ndarray, image: np.ndarray, weight: np.ndarray, 
     return np.array([txy[0], txy[1], tz]), int(use.sum())
 
 
-__all__ = ["refine_with_depth", "sample_depth", "solve_translation", "weighted_median"]
+def pose_depth_translation(pose: np.ndarray, K: np.ndarray, depth: np.ndarray, valid: np.ndarray | None,
+                           joint_depth_offset: float) -> tuple[np.ndarray, int]:
+    """The translation (3,) metres that moves a camera-frame smpl+head_30 pose (30, 3) metres (NaN
+    rows = missing) to the distance the depth map (H, W) metres measures at its joints' pixels
+    (`refine_with_depth`: body joints `joint_depth_offset` metres behind the surface, the 6 face
+    joints on it), and the joints that agreed; (0, 0, 0) and 0 with too few readings."""
+    offset = np.full(N_JOINTS, float(joint_depth_offset))
+    offset[list(HEAD_JOINTS)] = 0.0
+    T, used = refine_with_depth(pose, project(pose, K), np.ones(N_JOINTS), K, np.zeros(3), depth, valid, offset)
+    return T, used
+
+
+__all__ = ["pose_depth_translation", "refine_with_depth", "sample_depth", "solve_translation", "weighted_median"]

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import StoreError
 from ..skeleton import N_JOINTS
 from ..stages import DROPS_FRAME, STAGES
-from ..store import StoreWriter, store_problems
+from ..store import SOURCE_STAGES, StoreWriter, store_problems
 from .cache import Cache
 from .faults import fault
 from .tasks import Shard
@@ -132,7 +132,8 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
         "head_box": stack("head_box", (4,)), "body_box": stack("body_box", (4,)),
         "head_pos": e["head"]["head_pos"][keep], "pose": pose.reshape(len(fr), N_JOINTS, 3),
         "view": e["view"]["view"][keep],
-        "view_source": e["view"]["source"][keep] if "source" in e["view"] else np.zeros(int(keep.sum()), np.int8),
+        **{f"{st}_source": e[st]["source"][keep] if "source" in e[st] else np.zeros(int(keep.sum()), np.int8)
+           for st in SOURCE_STAGES},
         "gaze": stack("gaze", (3,)), "eye": stack("eye", (3,)),
         "gaze_target": stack("gaze_target", (3,)),
         "obj_count": obj_count[keep],
@@ -147,10 +148,10 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
 
 
 def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: dict[str, Any],
-             run_key: str, view_sources: tuple[str, ...], progress: bool = True) -> tuple[FinalizeCounts, bool]:
+             run_key: str, sources: dict[str, tuple[str, ...]], progress: bool = True) -> tuple[FinalizeCounts, bool]:
     """Write the store at `out` from the cache (see the module docstring). Returns the counts and
-    whether anything was written (False: `out` was already this run's store). view_sources: the
-    names behind frames/view_source."""
+    whether anything was written (False: `out` was already this run's store). sources: per stage
+    of store.SOURCE_STAGES the names behind frames/<stage>_source."""
     from tqdm import tqdm
 
     done = _finished_counts(out, run_key)
@@ -179,7 +180,7 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
         raise LostEntries(lost)
     counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
     attrs = {**attrs, "summary": asdict(counts), "run": {**attrs.get("run", {}), "key": run_key}}
-    writer.close(attrs, view_sources)
+    writer.close(attrs, sources)
     _fsync_tree(partial)
     old = work / "previous.zarr"
     if old.exists():

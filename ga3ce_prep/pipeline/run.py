@@ -33,7 +33,7 @@ from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
-from ..store import SCHEMA_VERSION, validate_store_attrs
+from ..store import SCHEMA_VERSION, SOURCE_STAGES, validate_store_attrs
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, LostEntries, finalize
@@ -157,8 +157,8 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
-        view = conf.stages["view"]
-        view_sources = backend_class("view", view.backend).sources or (view.backend,)
+        sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
+                   for st in SOURCE_STAGES}
         reports: list[StageReport] = []
         compute_seconds = fin_seconds = 0.0
         for attempt in range(1, REPAIR_PASSES + 1):
@@ -167,7 +167,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
             t_fin = time.perf_counter()
             try:
                 counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                           view_sources, progress=progress)
+                                           sources, progress=progress)
                 break
             except LostEntries as e:
                 if attempt == REPAIR_PASSES:

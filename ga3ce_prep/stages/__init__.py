@@ -5,13 +5,14 @@ Stages, in dependency order, and what a failure of each does to the frame (docs/
     input    frame checks (finite K, readable image)   failure drops the frame
     depth    depth map + raw validity                   failure drops the frame (no head position)
     objects  P_object: per-mask median 3D points         failure degrades it: zero objects
-    head     t_object                                    failure drops the frame
+    head     t_object (its fallbacks read the pose)      failure drops the frame
     pose     P_pose (30, 3)                              failure degrades it: NaN pose
     view     the view prior v                            failure drops the frame
 
 A backend may read more upstream stages than its stage's own (`Backend.needs`, within
 `OPTIONAL_UPSTREAM`): a pose estimator refining with the depth map, a view estimator falling back
-to the pose when no face is visible. `upstream_of` gives a pipeline's effective dependencies.
+to the pose when no face is visible, the head position falling back to the pose's head when the
+head has no measured depth. `upstream_of` gives a pipeline's effective dependencies.
 
 Backends are imported only when a pipeline names them (Open3D, h5py stay unloaded otherwise).
 """

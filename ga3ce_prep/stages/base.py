@@ -8,6 +8,7 @@ method and its parameters as a typed dataclass:
     depth    DepthBackend.depth(frame)                        -> DepthMap
     objects  ObjectsBackend.objects(frame, depth: DepthMap)   -> FrameObjects
     head     HeadBackend.head(frame, depth: DepthMap)         -> (3,) float32 t_object, metres
+                                                                 (head/depth: Sourced, and it reads the pose)
     pose     PoseBackend.pose(frame)                          -> (30, 3) float32 smpl+head_30, metres
     view     ViewBackend.view(frame)                          -> (3,) float32 unit v, camera frame
 

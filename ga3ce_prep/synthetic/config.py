@@ -130,6 +130,7 @@ class DepthConfig:
     blob_rate: float = 1.5                       # random dropout blobs per frame (Poisson mean)
     blob_radius: tuple[float, float] = (3.0, 14.0)  # px at 640 wide
     quantize_mm: bool = True
+    head_hole_prob: float = 0.0                  # frames whose whole head box has no depth (dark hair, a sensor hole)
 
 
 @dataclass

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .camera import default_height, intrinsics
 from .config import SynthConfig, load_config
-from .noise import depth_sensor, rgb_sensor
+from .noise import blank_box, depth_sensor, rgb_sensor
 from .truth import FILENAME, TruthWriter
 from .world import Scene
 from .writers import WRITERS, FrameContext
@@ -84,6 +84,8 @@ def generate(fmt: str, out: str | Path, scenes: int, frames_per_scene: int, seed
                     if writer.has_depth:
                         v = step.views[c]
                         depth, _ = depth_sensor(v.depth, v.albedo_lum, v.shiny, cfg.depth, scene.banks[c], rng)
+                        if cfg.depth.head_hole_prob > 0 and rng.random() < cfg.depth.head_hole_prob:
+                            blank_box(depth, tr.head_box)
                     timer.lap("sensor noise")
                     writer.write(FrameContext(i, c, t, tr, rgb, depth, rng))
                     timer.lap("write images + annotations")

@@ -3,7 +3,9 @@
 Depth noise std grows with z^2: sigma(z) = sigma0 + sigma_z2 * (z - z0)^2 (Nguyen et al. 2012's
 Kinect model). Holes, each with its own rate: out of range (and no return), depth edges (a band
 where neighbouring depths jump by more than `edge_threshold` relative), dark surfaces (albedo
-luminance below `dark_threshold`), shiny surfaces, and random dropout blobs.
+luminance below `dark_threshold`), shiny surfaces, and random dropout blobs; and, in a fraction
+`head_hole_prob` of the frames, the whole head box (`blank_box`: no measured depth near the head,
+the case the head stage's fallbacks handle).
 
 Gaussian fields are drawn once per scene into a `NoiseBank` and cropped at a random offset per
 frame: drawing 900k normals per frame would cost more than rendering.
@@ -103,3 +105,14 @@ def depth_sensor(depth: np.ndarray, albedo_lum: np.ndarray, shiny: np.ndarray, c
     holes = DepthHoles(out_of_range, edge, dark, shiny_h, blob.astype(bool))
     noisy = np.where(holes.any | (noisy <= 0), 0.0, noisy).astype(np.float32)
     return noisy, holes
+
+
+def blank_box(depth: np.ndarray, box: np.ndarray) -> None:
+    """Set depth (H, W) to 0 (a hole) in place over every pixel the box x1, y1, x2, y2 (4,) px
+    touches; a non-finite box changes nothing."""
+    if not np.isfinite(box).all():
+        return
+    H, W = depth.shape
+    x1, y1 = (max(0, int(np.floor(c))) for c in box[:2])
+    x2, y2 = min(W, int(np.ceil(box[2])) + 1), min(H, int(np.ceil(box[3])) + 1)
+    depth[y1:y2, x1:x2] = 0.0

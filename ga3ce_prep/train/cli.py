@@ -22,6 +22,7 @@ from ..store import ContextStore, open_store
 from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
 from .dataset import ContextDataset
 from .evaluate import evaluate as run_eval, format_eval_table
+from .frameset import PROTOCOLS
 from .profiles import PROFILES, DatasetProfile
 from .report import report as run_report
 from .trainer import TrainConfig, train as run_train
@@ -130,7 +131,7 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
 
     \b
     Defaults: the paper's recipe (AdamW, weight decay 0.1, 4 warm-up epochs then cosine per step,
-    gradient clip 0.1, batch 32, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
+    gradient clip 0.1, batch 32 on GFIE and 64 on GAFA, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
     and deterministic on CPU.
     Example: ga3ce-prep train --store synth.zarr --out runs/full --ablation no-d3
     """
@@ -163,26 +164,33 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
 @click.option("--batch-size", default=256, show_default=True, help="Frames per inference batch.")
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
 @click.option("--no-scenes", is_flag=True, help="Leave out the per-scene table.")
+@click.option("--frames", type=click.Choice(["auto", *PROTOCOLS]), default="auto", show_default=True,
+              help="Frames scored: auto = the dataset's protocol (GAFA: windows; else all); windows = GAFA's "
+              "non-overlapping 7-frame windows of raw-consecutive frames; all = every frame of the split.")
+@click.option("--data", default=None, type=click.Path(file_okay=False),
+              help="The dataset's root, when it is no longer where the store's provenance says (the split's rows, "
+              "and with --gfm the images and depth, are read from it).")
 @click.option("--force", is_flag=True, help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset).")
 @click.option("--gfm", "gfm", default=None, metavar="CHECKPOINT",
               help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns (AUC, L2, 3D distance, 3D angle) "
               "for GFIE, Ours and Ours + GFM, from the frames' images and depth (GFIE or CAD-120 stores).")
-@click.option("--data", default=None, help="With --gfm: the dataset's root, if not where the store was made from.")
 @click.option("--gfm-batch-size", default=16, show_default=True, help="With --gfm: frames per pass of GFIE's network.")
-def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_size, threads, no_scenes, force, gfm,
-             data, gfm_batch_size):
+def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_size, threads, no_scenes, frames, data,
+             force, gfm, gfm_batch_size):
     """Evaluate a checkpoint: 3D/2D MAE, front/back, per scene, and the baselines on the same frames.
 
     \b
-    Baselines: the view prior v, the head direction from the pose keypoints, and v snapped to the
-    nearest object within a cone. The table says whether the model beats each of them.
+    Frames: the dataset's own rows for the split (re-read from the dataset the store was built
+    from), every one accounted for: "scored N of M" and the reasons for the rest (the JSON lists
+    their ids). Baselines: the view prior v, the head direction from the pose keypoints, and v
+    snapped to the nearest object within a cone. The table says whether the model beats each.
     With --gfm, GFIE's gaze-following network adds GFIE's Table 1 (docs/training.md, "GFIE's
     gaze-following modules").
     """
     _log_setup()
     r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device, batch_size=batch_size,
                  snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
-                 threads=threads, gfm=gfm, data=data, gfm_batch_size=gfm_batch_size)
+                 threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
     if "cdf_png" in r:
         click.echo(f"\nCDF plot: {r['cdf_png']}")

@@ -9,8 +9,8 @@ frame has more. `ContextDataset.batch(indices)` builds the same Batch straight f
 (vectorised gather; what the trainer uses). `BucketBatchSampler` groups frames of similar object
 counts so per-batch padding stays small.
 
-Frames with no finite view prior are left out (and counted); frames with unknown gaze are left out
-when `require_gaze` (training, evaluation). Objects with non-finite positions, and every object of
+Frames with no finite view prior are left out; frames with unknown gaze are left out when
+`require_gaze` (training, evaluation); `left_out` keeps their store rows by reason. Objects with non-finite positions, and every object of
 a frame whose head position t_object is not finite, are dropped at load, so such a frame is a valid
 sample with zero objects (the model's null token). Missing pose joints stay NaN (the model's
 missing-joint policy handles them: ga3ce_prep/model/egocentric.py).
@@ -80,10 +80,12 @@ class ContextDataset(Dataset):
     split: "train" | "val" | "test", a sequence of them, or None for every frame.
     require_gaze: leave out frames whose ground-truth gaze is unknown.
     max_frames: keep only this many frames (an evenly spaced subset, for short runs).
+    only: keep only these store rows (k,) of the split (an evaluation protocol's frames).
+    left_out: reason ("no view prior", "no ground-truth gaze") -> store rows of the split left out.
     """
 
     def __init__(self, store: ContextStore | str | Path, split: str | Sequence[str] | None = None,
-                 require_gaze: bool = True, max_frames: int | None = None):
+                 require_gaze: bool = True, max_frames: int | None = None, only: np.ndarray | None = None):
         self.store = store if isinstance(store, ContextStore) else open_store(store, verify=True)
         s = self.store
         n = len(s)
@@ -92,15 +94,17 @@ class ContextDataset(Dataset):
         else:
             names = [split] if isinstance(split, str) else list(split)
             rows = np.sort(np.concatenate([s.indices(name) for name in names]))
+        if only is not None:
+            rows = rows[np.isin(rows, only)]
         f = s.frames
         usable = np.isfinite(f["view"][rows]).all(1) & (np.linalg.norm(f["view"][rows], axis=1) > 0)
-        self.n_no_view = int((~usable).sum())
+        self.left_out = {"no view prior": rows[~usable]}
         if require_gaze:
             gaze_ok = np.isfinite(f["gaze"][rows]).all(1)
-            self.n_no_gaze = int((usable & ~gaze_ok).sum())
+            self.left_out["no ground-truth gaze"] = rows[usable & ~gaze_ok]
             usable &= gaze_ok
-        else:
-            self.n_no_gaze = 0
+        self.n_no_view = len(self.left_out["no view prior"])
+        self.n_no_gaze = len(self.left_out.get("no ground-truth gaze", ()))
         rows = rows[usable]
         if max_frames is not None and max_frames < len(rows):
             rows = rows[np.linspace(0, len(rows) - 1, max_frames).round().astype(np.int64)]

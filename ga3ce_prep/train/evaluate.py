@@ -1,10 +1,15 @@
 """Evaluate a checkpoint on a store split: the model and three honest baselines on the same frames.
 
-Reported per method: 3D MAE, 2D MAE (GAFA style), front/back (true gaze z <= 0 is front), median,
-and a per-scene table. Methods: GA3CE (the checkpoint), the view prior v, the head direction from
-the pose keypoints, and snap-to-object (v snapped to the nearest object within a cone whose
-half-angle is chosen on the validation split). The summary says plainly whether the model beats
-each baseline. Python API: `evaluate(store, checkpoint, split) -> metrics dict`.
+Frames: the dataset's own rows for the split under its protocol (train/frameset.py: every row for
+GFIE and CAD-120, GAFA's 7-frame windows for GAFA; `frames` chooses), every one accounted for:
+"scored N of M" and, per reason, the ids of the others. Reported per method: 3D MAE, 2D MAE (GAFA
+style), front/back (true gaze z <= 0 is front; per window from its first frame under GAFA's
+windows), median, and per scene 3D and 2D (GAFA: the paper's Table 3 columns, Office = `lab`,
+Courtyard = both courtyard sessions by frames, beside the paper's row). Methods: GA3CE (the
+checkpoint), the view prior v, the head direction from the pose keypoints, and snap-to-object (v
+snapped to the nearest object within a cone whose half-angle is chosen on the validation split).
+The summary says plainly whether the model beats each baseline. Python API:
+`evaluate(store, checkpoint, split) -> metrics dict`.
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..errors import ConfigError
 from ..geometry import angular_error_deg
 from ..model import GA3CE
 from ..skeleton import head_direction_from_pose
@@ -24,9 +30,11 @@ from ..store import ContextStore, open_store
 from .baselines import choose_snap_cone, snap_to_object
 from .checkpoint import build_model, check_checkpoint, load_checkpoint
 from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
+from .frameset import PROTOCOLS, scored_frames
 from .gfm import evaluate_gfm, format_gfm_table
 from .metrics import summarize
 from .plots import plot_cdf
+from .profiles import DatasetProfile
 
 log = logging.getLogger("ga3ce_prep.train")
 
@@ -54,21 +62,36 @@ def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
     return b.objects.numpy(), b.mask.numpy()
 
 
+def _scene_columns(st: ContextStore, profile: DatasetProfile, scene: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Per frame (n,) the code of its per-scene column, and the columns: the profile's (in the
+    paper's order: GAFA's scenes, sessions merged) that have frames, else the store's scenes."""
+    of_scene = [profile.scene_column(name) for name in st.scene_names]
+    order = [c for c, _ in profile.scene_columns] + [c for c in dict.fromkeys(of_scene) if c not in
+                                                      {c for c, _ in profile.scene_columns}]
+    code = np.array([order.index(c) for c in of_scene], np.int64)
+    return code[scene] if len(code) else scene.astype(np.int64), order
+
+
 def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: str = "test",
              force: bool = False, device: str = "cpu", batch_size: int = 256,
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
-             json_path: str | Path | None = None, threads: int = 2, gfm: str | Path | None = None,
-             data: str | Path | None = None, gfm_batch_size: int = 16) -> dict[str, Any]:
+             json_path: str | Path | None = None, threads: int = 2, frames: str = "auto",
+             data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16) -> dict[str, Any]:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store (e.g. cross-dataset).
     snap_cone_deg: the snap baseline's cone; None chooses it on the validation split (else 15).
     cdf_path: PNG of the angular-error CDFs ("auto": eval_<split>_cdf.png beside the checkpoint;
-    None: no plot). json_path: also write the result as JSON. gfm: GFIE's checkpoint, to add GFIE's
-    Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth, from the dataset
-    the store was made from or the one at `data`, gfm_batch_size frames per pass). Returns a dict:
-    store, split, checkpoint, epoch, n_frames, snap_cone_deg, methods {name: summarize(...)}, beats
-    {baseline: bool}, ratio_to_prior, cdf_png, and gfm (`evaluate_gfm`) when asked.
+    None: no plot). json_path: also write the result as JSON. frames: "auto" (the dataset's
+    protocol, DatasetProfile.eval_frames), "windows" (GAFA's) or "all" (every frame). data: the
+    dataset's root when it is not where the store's provenance says. gfm: GFIE's checkpoint, to add
+    GFIE's Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth,
+    gfm_batch_size frames per pass). Returns a dict: store, split, checkpoint, epoch, n_frames
+    (scored), frames (train/frameset.py ScoredFrames.as_dict: protocol, expected, scored, unscored
+    {reason: [ids]}), head_sources {source: scored frames}, head_fallback_frames (scored frames whose
+    head position came from a fallback), snap_cone_deg, methods {name: summarize(...)},
+    scene_columns, paper_rows, beats {baseline: bool}, ratio_to_prior, cdf_png, and gfm
+    (`evaluate_gfm`) when asked.
     """
     torch.set_num_threads(threads)
     st = store if isinstance(store, ContextStore) else open_store(store, verify=True)
@@ -76,9 +99,13 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     problems = check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None, force=force)
     for p in problems:
         log.warning("evaluating despite a mismatch (--force): %s", p)
-    ds = ContextDataset(st, split)
+    profile = DatasetProfile.for_store(st)
+    fs = scored_frames(st, split, profile.eval_frames if frames == "auto" else frames, data, ContextDataset(st, split))
+    ds = ContextDataset(st, split, only=fs.rows)
     if len(ds) == 0:
-        raise ValueError(f"{st.path}: split {split!r} has no frames with a view prior and ground-truth gaze")
+        raise ConfigError(f"{st.path}: split {split!r} has no frames to score ({fs.expected} expected under "
+                          f"{PROTOCOLS[fs.protocol]}; {sum(map(len, fs.unscored.values()))} left out); "
+                          "choose another --split or --frames all")
     model = build_model(ckpt).to(device)
     preds = {"model": predict(model, ds, batch_size, device, ckpt["config"].get("n_max"))}
     preds["view_prior"] = ds.view
@@ -93,13 +120,21 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     objects, mask = _padded_objects(ds)
     preds["snap_to_object"], snapped = snap_to_object(ds.view, ds.head_pos, objects, mask, snap_cone_deg)
 
-    methods = {name: summarize(p, ds.gaze, ds.scene, st.scene_names) for name, p in preds.items()}
+    scene, columns = _scene_columns(st, profile, ds.scene)
+    methods = {name: summarize(p, ds.gaze, scene, columns, fs.front) for name, p in preds.items()}
     model_mae = methods["model"]["mae3d"]
+    head_sources, head_fallback = {}, 0
+    if "head" in st.source_names:  # code 0: the backend's own way (head: depth: measured depth)
+        codes = st.frames["head_source"][ds.rows]
+        head_sources = {st.source_names["head"][k]: int((codes == k).sum()) for k in np.unique(codes)}
+        head_fallback = int((codes != 0).sum())
     result: dict[str, Any] = {
         "store": str(st.path), "split": split, "checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]) + 1,
-        "config": ckpt["config"], "n_frames": len(ds), "snap_cone_deg": snap_cone_deg,
+        "config": ckpt["config"], "dataset": profile.name, "n_frames": len(ds), "frames": fs.as_dict(),
+        "head_sources": head_sources, "head_fallback_frames": head_fallback, "snap_cone_deg": snap_cone_deg,
         "head_from_pose_frames": int(pose_ok.sum()), "snapped_frames": int(snapped.sum()),
-        "methods": methods,
+        "methods": methods, "scene_columns": [c for c in columns if c in methods["model"]["per_scene"]],
+        "paper_rows": {label: dict(cells) for label, cells in profile.paper_rows} if fs.protocol == "windows" else {},
         "beats": {k: bool(model_mae < m["mae3d"]) for k, m in methods.items() if k != "model"},
         "ratio_to_prior": model_mae / methods["view_prior"]["mae3d"],
     }
@@ -116,16 +151,61 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     return result
 
 
-def _f(x: float) -> str:
+def _f(x: float | None) -> str:
     return "   n/a" if x is None or not math.isfinite(x) else f"{x:6.2f}"
 
 
+def _cell(mae3d: float | None, mae2d: float | None) -> str:
+    """A per-scene cell "3D / 2D", '-' where a value is unknown."""
+    g = lambda x: "  -  " if x is None or not math.isfinite(x) else f"{x:5.1f}"  # noqa: E731
+    return f"{g(mae3d)} / {g(mae2d)}"
+
+
+def format_accounting(result: dict[str, Any]) -> list[str]:
+    """"scored N of M" with the protocol, where the rows came from, and a line per reason for the rest."""
+    fr = result["frames"]
+    label = PROTOCOLS[fr["protocol"]]
+    if fr["protocol"] == "all" and result.get("dataset") == "gafa":
+        label += ", NOT GAFA's protocol (its 7-frame windows: --frames windows)"
+    within = f" ({fr['expected']} of the split's {fr['split_rows']} frames)" if fr["expected"] != fr["split_rows"] else ""
+    lines = [f"scored {fr['scored']} of {fr['expected']} {result['split']} frames: {label}{within}; rows from {fr['source']}"]
+    for reason, ids in fr["unscored"].items():
+        lines.append(f"  {len(ids):6d} not scored: {reason} (e.g. {ids[0]})")
+    hs = result.get("head_sources", {})
+    if result.get("head_fallback_frames"):
+        lines.append("head position of the scored frames: " + ", ".join(f"{k} {v}" for k, v in hs.items())
+                     + " (docs/pipeline.md, \"Head position\")")
+    return lines
+
+
+def format_scene_table(result: dict[str, Any]) -> list[str]:
+    """The per-scene table: 3D / 2D MAE per column and over all frames, for every method, and the
+    paper's rows beside them (unknown cells '-')."""
+    m, cols = result["methods"], result["scene_columns"]
+    w = 13
+    lines = ["per scene: 3D / 2D MAE (deg); All over frames", f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
+    for key, label in METHODS.items():
+        ps = m[key]["per_scene"]
+        cells = [_cell(ps[c]["mae3d"], ps[c]["mae2d"]) for c in cols] + [_cell(m[key]["mae3d"], m[key]["mae2d"])]
+        lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in cells))
+    for label, cells in result.get("paper_rows", {}).items():
+        row = [_cell(*cells[c]) if c in cells else _cell(None, None) for c in [*cols, "All"]]
+        lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in row))
+    lines.append(f"{'frames':34s} " + " ".join(f"{n:>{w}d}" for n in [*(m['model']['per_scene'][c]['n'] for c in cols), m['model']['n']]))
+    if result.get("paper_rows"):
+        lines.append("(GA3CE (paper): Table 3's per-scene cells are not in our sources, '-'; its All 3D is the full "
+                     "model of Tables 4/5. GAFA's README: its released GazeNet, averaged per batch of 32 windows; "
+                     "ours are per frame)")
+    return lines
+
+
 def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
-    """The evaluation as plain-text tables: methods, per scene, and the verdict on each baseline."""
+    """The evaluation as plain-text tables: which frames, methods, per scene, and the verdict on each baseline."""
     m = result["methods"]
     lines = [f"{result['store']} | split {result['split']} | {result['n_frames']} frames | "
-             f"{result['checkpoint']} (epoch {result['epoch']})", ""]
-    lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} {'front3D':>7s} {'back3D':>7s}")
+             f"{result['checkpoint']} (epoch {result['epoch']})", *format_accounting(result), ""]
+    per_window = " (front/back per window)" if result["frames"]["protocol"] == "windows" else ""
+    lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} {'front3D':>7s} {'back3D':>7s}{per_window}")
     for key, label in METHODS.items():
         if key == "snap_to_object":
             label = f"{label} (cone {result['snap_cone_deg']:g} deg)"
@@ -139,11 +219,8 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
         d = m[key]["mae3d"] - m["model"]["mae3d"]
         lines.append(f"  {'beats' if beats else 'does NOT beat'} {METHODS[key]}: "
                      f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f})")
-    if per_scene and len(m["model"]["per_scene"]) > 1:
-        lines += ["", f"{'scene':24s} {'frames':>7s} {'model':>7s} {'v prior':>7s} {'pose':>7s} {'snap':>7s}"]
-        for name, r in m["model"]["per_scene"].items():
-            row = [m[k]["per_scene"][name]["mae3d"] for k in ("view_prior", "head_from_pose", "snap_to_object")]
-            lines.append(f"{name[:24]:24s} {r['n']:>7d} {_f(r['mae3d']):>7s} " + " ".join(f"{_f(x):>7s}" for x in row))
+    if per_scene and (len(result["scene_columns"]) > 1 or result.get("paper_rows")):
+        lines += ["", *format_scene_table(result)]
     if "gfm" in result:
         lines += ["", format_gfm_table(result["gfm"])]
     return "\n".join(lines)

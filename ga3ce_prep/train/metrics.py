@@ -2,7 +2,8 @@
 
 3D MAE: mean angle between predicted and true directions. 2D MAE (GAFA): keep the camera-frame x
 and y of both vectors, re-normalise, take the angle; frames whose x-y part vanishes are skipped.
-Front / back (GAFA): front when the true gaze has z <= 0 (it points toward the camera). All means
+Front / back (GAFA): front when the true gaze has z <= 0 (it points toward the camera), per frame,
+or per window from its first frame as GAFA's `test_step` decides it (`front` given). All means
 are plain per-frame means (GAFA's released code averages per batch in `models/gazenet.py`).
 """
 from __future__ import annotations
@@ -28,15 +29,17 @@ def _mean(x: np.ndarray) -> float:
     return float(x.mean()) if len(x) else float("nan")
 
 
-def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: list[str]) -> dict[str, Any]:
-    """Metrics of one method on n frames: pred, gt (n, 3); scene (n,) int codes.
+def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: list[str],
+              front: np.ndarray | None = None) -> dict[str, Any]:
+    """Metrics of one method on n frames: pred, gt (n, 3); scene (n,) int codes into scene_names;
+    front (n,) bool (GAFA: per window from its first frame), None: gt z <= 0 per frame.
 
     Returns {n, mae3d, mae2d, median3d, front: {n, mae3d, mae2d}, back: {...},
-    per_scene: {name: {n, mae3d}}}; degrees.
+    per_scene: {name: {n, mae3d, mae2d}} in scene_names' order}; degrees.
     """
     e3 = angular_error_deg(pred, gt)
     e2 = angular_errors_2d(pred, gt)
-    front = gt[:, 2] <= 0
+    front = gt[:, 2] <= 0 if front is None else np.asarray(front, bool)
     out: dict[str, Any] = {"n": int(len(gt)), "mae3d": _mean(e3), "mae2d": _mean(e2),
                            "median3d": float(np.median(e3)) if len(e3) else float("nan")}
     for name, sel in (("front", front), ("back", ~front)):
@@ -45,6 +48,6 @@ def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: 
     for code in np.unique(scene):
         sel = scene == code
         name = scene_names[code] if 0 <= code < len(scene_names) else str(code)
-        per_scene[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel])}
+        per_scene[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel]), "mae2d": _mean(e2[sel])}
     out["per_scene"] = per_scene
     return out

@@ -82,9 +82,11 @@ def plot_per_scene(methods: dict[str, dict[str, Any]], labels: dict[str, str], p
     return Path(path)
 
 
-def plot_ablation(rows: Sequence[dict[str, Any]], path: str | Path, paper_column: str) -> Path:
+def plot_ablation(rows: Sequence[dict[str, Any]], path: str | Path, paper_column: str,
+                  appearance_is_v: bool = True) -> Path:
     """Bars of our 3D MAE / v prior per ablation row beside the paper's ratio (paper MAE / its
-    appearance-only MAE), so a synthetic store and the paper's dataset compare on one axis."""
+    appearance-only MAE), so a synthetic store and the paper's dataset compare on one axis.
+    appearance_is_v False: the paper's appearance row is another network (GAFA's), labelled so."""
     plt = _pyplot()
     names = [r["label"] for r in rows]
 
@@ -96,7 +98,8 @@ def plot_ablation(rows: Sequence[dict[str, Any]], path: str | Path, paper_column
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(rows)), 4), dpi=110)
     ax.bar(x - 0.2, ours, 0.4, yerr=err, label="ours (3D MAE / v prior)")
-    ax.bar(x + 0.2, paper, 0.4, label=f"paper {paper_column.upper()} (3D MAE / appearance only)")
+    base = "appearance only" if appearance_is_v else "GAFA's gaze module, not v"
+    ax.bar(x + 0.2, paper, 0.4, label=f"paper {paper_column.upper()} (3D MAE / {base})")
     ax.set_xticks(x, names, rotation=30, ha="right")
     ax.set_ylabel("relative 3D MAE (lower is better)")
     ax.axhline(1.0, color="grey", lw=0.8)

@@ -46,7 +46,7 @@ class TrainConfig:
     store: str = ""  # the 3D context store to train on (from `ga3ce-prep run`)
     out: str = "runs/ga3ce"  # the run folder
     epochs: int = 20  # training epochs (the paper's 20)
-    batch_size: int = 32  # frames per batch (the paper: 32 on GFIE, 64 on GAFA)
+    batch_size: int | None = None  # frames per batch; unset: the paper's for the store's dataset (DatasetProfile.batch_size: 32 on GFIE and CAD-120, 64 on GAFA, else 32)
     lr: float = 3e-4  # peak AdamW learning rate, below the paper's: docs/training.md "Learning rate"
     weight_decay: float = 0.1  # AdamW weight decay (the paper's)
     warmup_epochs: float = 4.0  # linear warm-up over this many epochs (stepped per batch), then cosine decay to 0
@@ -68,7 +68,7 @@ class TrainConfig:
             self.model = ModelConfig.from_dict(self.model)
         if self.view_noise not in ("auto", "on", "off"):
             raise ConfigError(f"view_noise must be auto, on or off, got {self.view_noise!r}")
-        if self.epochs < 1 or self.batch_size < 1:
+        if self.epochs < 1 or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs ({self.epochs}) and batch_size ({self.batch_size}) must be >= 1")
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device must be cpu or cuda, got {self.device!r}")
@@ -186,8 +186,9 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     fingerprint = store_fingerprint(store)
     train_ds, val_ds = _splits(config, store)
     use_noise = config.uses_view_noise(train_ds.profile)
+    batch_size = config.batch_size or train_ds.profile.batch_size
     cfg = config.to_dict()
-    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise,
+    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise, "batch_size_resolved": batch_size,
                                                  "store_fingerprint": fingerprint}, indent=2))
 
     # the model (initial weights drawn from the seed); appearance only has nothing to train
@@ -202,7 +203,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
     sampler = BucketBatchSampler(train_ds.obj_count if config.model.use_objects else np.zeros(len(train_ds)),
-                                 config.batch_size, seed=config.seed, bucket=config.bucket)
+                                 batch_size, seed=config.seed, bucket=config.bucket)
     steps_per_epoch = len(sampler)
     total_steps = steps_per_epoch * config.epochs
     warmup_steps = max(1, round(config.warmup_epochs * steps_per_epoch))
