@@ -44,6 +44,7 @@ from ..stages import call_backend, dependency_order
 from ..stages.base import DepthMap, Sourced
 from .cache import Cache
 from .config import StageConfig
+from .faults import fault
 
 VALUE_COLUMN = {"pose": "pose", "view": "view", "head": "head_pos"}  # a stage's per-frame value in its entry
 
@@ -201,6 +202,7 @@ class StageEntry:
             return None
         finally:
             self.seconds += time.perf_counter() - t
+            fault("stage.frame")
 
     def attempt_batch(self, rows: list[int], fn: Callable[..., list], frames: list[FrameRef],
                       needs: dict[str, list[Any]]) -> None:
