@@ -158,12 +158,21 @@ class StoreWriter:
             self._push(f"failures/{name}", self._coerce(FAILURE_ARRAYS, f"failures/{name}", name, failures[name], n))
 
     def close(self, attrs: dict[str, Any], view_sources: tuple[str, ...] = ("view",)) -> None:
-        """Flush every buffer and write the root attributes (schema_version is set here).
+        """`flush`, then `commit`."""
+        self.flush(view_sources)
+        self.commit(attrs)
+
+    def flush(self, view_sources: tuple[str, ...] = ("view",)) -> None:
+        """Write every buffered row and the arrays' attributes: everything but the root attributes.
         view_sources: the names behind frames/view_source's codes (the view backend's sources)."""
         for key in self.arrays:
             self._push(key, None, force=True)
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
         self.arrays["frames/view_source"].attrs["names"] = list(view_sources)
+
+    def commit(self, attrs: dict[str, Any]) -> None:
+        """Write the root attributes (validated first; schema_version is set here) in one write of
+        the root metadata, after everything else: until then the store reads as unfinished."""
         attrs = {**attrs, "schema_version": SCHEMA_VERSION}
         validate_store_attrs(attrs)
         self.root.attrs.update(attrs)

@@ -13,7 +13,9 @@ neighbours' FrameRefs and pixels, not their stage outputs (their identities are 
 Schedulers: the local threaded scheduler by default (`workers=None`); `workers=N` starts a
 `distributed.LocalCluster` of N single-threaded worker processes (parallelism without the GIL:
 the stages are partly pure Python); `scheduler=ADDRESS` uses a running dask cluster, whose
-workers must see the same data, cache and output paths.
+workers must see the data at the same path, and the cache at the same path or URL (object
+storage needs no shared filesystem). A worker that dies is replaced by dask and its tasks run
+again: a task only ever adds complete cache entries, so a rerun task finds or rewrites them.
 """
 from __future__ import annotations
 
@@ -32,14 +34,14 @@ from .tasks import Shard, StageReport, TaskEnv, geometry_task, input_task, stage
 
 def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[str, int]]:
     """(the tasks to run, frames already cached per task kind)."""
-    cache = Cache(env.cache_root)
+    present = Cache(env.cache_root).entries()
     kinds, after = task_stages(env.upstream), task_upstream(env.upstream)
     tasks: list[Delayed] = []
     cached = {k: 0 for k in kinds}
     for s in shards:
         made: dict[str, Delayed] = {}
         for kind, stages in kinds.items():  # dependency order: a task's upstream tasks come first
-            if all(cache.has(st, s.keys[st]) for st in stages):
+            if all((st, s.keys[st]) in present for st in stages):
                 cached[kind] += len(s.frames)
                 continue
             up = [made[k] for k in after[kind] if k in made]

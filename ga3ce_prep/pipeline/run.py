@@ -14,6 +14,9 @@ Order of a run (nothing is computed before every check has passed):
 
 The work directory (default `<out>.work/`) holds the lock, the cache and finalize's scratch; keep it
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
+`--out` and `--work` may be URLs of object storage (location.py): a remote store with its work
+directory beside it (the cache on object storage, for workers without a shared filesystem) or a
+local one; a local store needs a local work directory.
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, finalize
 from .graph import execute
+from .location import Location, absolute, filesystem, is_remote, join
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
@@ -139,10 +143,10 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     t0 = time.perf_counter()
     data_root = Path(data).resolve()
     conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models)
+    work = _work_dir(work_dir, out_path)
     frames = _open_frames(conf, data_root, limit)
-    work = Path(work_dir) if work_dir else Path(f"{out_path}.work")
-    with RunLock(work, str(out_path)):
-        cache = Cache(work / "cache")
+    with RunLock(work, str(out_path)) as lock:
+        cache = Cache(join(work, "cache"))
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
@@ -151,6 +155,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         t_fin = time.perf_counter()
         view = conf.stages["view"]
         view_sources = backend_class("view", view.backend).sources or (view.backend,)
+        lock.check()
         counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
                                    view_sources, progress=progress)
         fin_seconds = time.perf_counter() - t_fin
@@ -160,8 +165,8 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
 
 def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
                     overrides: list[str] | dict[str, Any] | None, shard_size: int | None,
-                    workers: int | None, models: str | Path | None = None) -> tuple[PipelineConfig, Path]:
-    """The validated pipeline (run options applied) and the output's absolute path."""
+                    workers: int | None, models: str | Path | None = None) -> tuple[PipelineConfig, Location]:
+    """The validated pipeline (run options applied) and the output's absolute path or URL."""
     conf = load_pipeline(pipeline, data_root, overrides, models=models)
     if shard_size is not None:
         if shard_size < 1:
@@ -169,13 +174,38 @@ def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out:
         conf.shard_size = int(shard_size)
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be at least 1, not {workers}")
-    if "://" in str(out):
-        raise ConfigError(f"--out {out}: remote stores are not supported by `run` yet (finalize renames a "
-                          "local directory into place); write locally and copy the store")
-    out_path = Path(out).resolve()
-    if out_path.exists() and not (out_path / "zarr.json").is_file():
+    out_path = absolute(out)
+    exists, is_store = _probe(out_path) if is_remote(out_path) else (out_path.exists(), (out_path / "zarr.json").is_file())
+    if exists and not is_store:
         raise StoreError(f"--out {out_path} exists and is not a ga3ce-prep store; choose another path or remove it")
     return conf, out_path
+
+
+def _probe(url: str) -> tuple[bool, bool]:
+    """(something is at the URL, a store's root metadata is), after checking that its bucket (the
+    URL's first component) is there and these credentials can read it."""
+    fs = filesystem(url)
+    bucket = fs._strip_protocol(url).lstrip("/").split("/")[0]
+    try:
+        if not fs.exists(bucket):
+            raise ConfigError(f"--out {url}: bucket {bucket} does not exist (or these credentials cannot see it); "
+                              "create it first")
+        return fs.exists(url), fs.exists(f"{url}/zarr.json")
+    except ConfigError:
+        raise
+    except Exception as e:  # noqa: BLE001 - credentials, endpoint, network: say which and stop
+        raise ConfigError(f"--out {url}: cannot reach it ({type(e).__name__}: {e}); check the credentials and "
+                          "endpoint (docs/pipeline.md, \"Object storage\")") from None
+
+
+def _work_dir(work_dir: str | Path | None, out: Location) -> Location:
+    """The work directory: --work, else `<out>.work` (on object storage too, beside the store). A
+    local store needs a local work directory (it is committed by a rename from there)."""
+    work = absolute(work_dir or f"{out}.work")
+    if is_remote(work) and not is_remote(out):
+        raise ConfigError(f"--work {work}: a local --out is committed by a rename from a local work directory; "
+                          "give a local --work, or write the store to object storage too")
+    return work
 
 
 def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> list[FrameRef]:

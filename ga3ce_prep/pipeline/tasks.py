@@ -70,7 +70,7 @@ class Shard:
 class TaskEnv:
     """What every task needs besides its shard (sent to workers once per task, small)."""
 
-    cache_root: Path
+    cache_root: Path | str  # a local directory or a URL
     data_root: Path
     stages: dict[str, StageConfig]
     upstream: dict[str, tuple[str, ...]]  # each stage's effective upstream (stages.upstream_of)
