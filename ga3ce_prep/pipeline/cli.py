@@ -14,18 +14,21 @@ import click
                    "cad120, gafa, folder.")
 @click.option("--data", "-d", required=True, type=click.Path(file_okay=False),
               help="Dataset root, in the format the pipeline's dataset.format names.")
-@click.option("--out", "-o", required=True, help="Output store (a directory, e.g. out/gfie.zarr).")
+@click.option("--out", "-o", required=True,
+              help="Output store: a directory (out/gfie.zarr) or an fsspec URL (s3://bucket/gfie.zarr, with s3fs "
+                   "installed; credentials from the environment).")
 @click.option("--workers", "-j", type=int, default=None,
               help="Run on a local dask cluster of N single-threaded worker processes. Default: the local "
                    "threaded scheduler.")
 @click.option("--scheduler", default=None,
-              help="Address of a running dask scheduler (tcp://host:8786); its workers must see --data, --out "
-                   "and the work directory at the same paths.")
+              help="Address of a running dask scheduler (tcp://host:8786); its workers must see --data at the same "
+                   "path, and the work directory at the same path or URL.")
 @click.option("--shard-size", type=int, default=None,
               help="Frames per shard (the unit of caching and of tasks). Default: the pipeline's run.shard_size.")
 @click.option("--limit", type=int, default=None, help="Process only the first N frames (in the dataset's order).")
-@click.option("--work", type=click.Path(file_okay=False), default=None,
-              help="Work directory for the lock, the stage cache and finalize's scratch. Default: <out>.work")
+@click.option("--work", default=None,
+              help="Work directory for the lock, the stage cache and finalize's scratch (local, or a URL when --out "
+                   "is one). Default: <out>.work")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
 @click.option("--models", "-m", type=click.Path(file_okay=False), default=None,

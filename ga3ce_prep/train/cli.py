@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import typing
 from collections.abc import Callable
 from typing import Any, Literal
@@ -118,6 +119,7 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
     gradient clip 0.1, batch 32, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
     and deterministic on CPU.
     Example: ga3ce-prep train --store synth.zarr --out runs/full --ablation no-d3
+    Data-parallel: torchrun --nproc-per-node 2 --no-python ga3ce-prep train ... (docs/training.md).
     """
     _log_setup()
     chosen = {k: v for k, v in (("rotation", rotation), ("encoding", encoding))
@@ -132,8 +134,9 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
     except (TypeError, ValueError) as e:
         raise ConfigError(f"model options: {e}") from None
     run = run_train(_train_config(store, out, model, **recipe), resume=resume, force=force)
-    click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
-    click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
+    if int(os.environ.get("RANK", "0")) == 0:  # under torchrun: once
+        click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
+        click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
 
 
 @click.command()
