@@ -9,7 +9,9 @@ import sys
 import time
 
 import pytest
+from click.testing import CliRunner
 
+from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import StoreError
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.pipeline.lock import LEASE_S, RunLock
@@ -78,6 +80,8 @@ def test_killed_runs_on_s3_resume_to_the_local_store(s3, synth_world, local_stor
     assert_same_store(url, local_store)
     assert store_digests(url) == store_digests(local_store)  # bit for bit
     assert not fs.exists("bkt/runs/a.zarr.work/lock")  # the lease is released
+    info = CliRunner().invoke(cli, ["info", url])
+    assert info.exit_code == 0, info.output
 
     # an older store at --out, killed once it is uncommitted: the rerun still gives the store
     p = _cli_run(synth_world, url, tmp_path, extra=["stages.view.params.mean_error_deg=30"])

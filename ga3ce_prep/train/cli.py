@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import typing
 from collections.abc import Callable
 from typing import Any, Literal
@@ -21,6 +20,7 @@ from ..model import ENCODINGS, ROTATIONS, ModelConfig
 from ..params import field_docs
 from ..store import open_store
 from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
+from .distributed import Ranks
 from .evaluate import evaluate as run_eval, format_eval_table
 from .profiles import PROFILES, DatasetProfile
 from .trainer import TrainConfig, train as run_train
@@ -134,7 +134,7 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
     except (TypeError, ValueError) as e:
         raise ConfigError(f"model options: {e}") from None
     run = run_train(_train_config(store, out, model, **recipe), resume=resume, force=force)
-    if int(os.environ.get("RANK", "0")) == 0:  # under torchrun: once
+    if Ranks.from_env().main:  # under torchrun: once
         click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
         click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
 

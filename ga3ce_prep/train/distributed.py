@@ -25,23 +25,26 @@ class Ranks:
     rank: int = 0
     world: int = 1
     local: int = 0
-    joined: bool = False  # this call started the process group (and ends it: `leave`)
 
     @classmethod
-    def join(cls, device: str) -> "Ranks":
-        """Join torchrun's process group when WORLD_SIZE > 1, else one process."""
-        world = int(os.environ.get("WORLD_SIZE", "1"))
-        if world == 1:
-            return cls()
+    def from_env(cls) -> "Ranks":
+        """The place torchrun gives this process (RANK, WORLD_SIZE, LOCAL_RANK); 0 of 1 without it."""
+        env = os.environ
+        return cls(int(env.get("RANK", "0")), int(env.get("WORLD_SIZE", "1")), int(env.get("LOCAL_RANK", "0")))
+
+    def join(self, device: torch.device) -> bool:
+        """Join torchrun's process group (gloo on CPU, nccl on CUDA) unless there is one process or
+        the group exists; True when this call started it (then `leave` ends it)."""
+        if self.world == 1:
+            return False
         import torch.distributed as dist
 
-        local = int(os.environ.get("LOCAL_RANK", "0"))
-        joined = not dist.is_initialized()
-        if joined:
-            if device == "cuda":
-                torch.cuda.set_device(local)
-            dist.init_process_group("nccl" if device == "cuda" else "gloo")
-        return cls(dist.get_rank(), dist.get_world_size(), local, joined)
+        if dist.is_initialized():
+            return False
+        if device.type == "cuda":
+            torch.cuda.set_device(device)
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        return True
 
     @property
     def main(self) -> bool:
@@ -73,7 +76,6 @@ class Ranks:
         return float(t.item())
 
     def leave(self) -> None:
-        if self.joined:
-            import torch.distributed as dist
+        import torch.distributed as dist
 
-            dist.destroy_process_group()
+        dist.destroy_process_group()

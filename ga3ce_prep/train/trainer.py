@@ -178,15 +178,18 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     then continued with resume=True and ends identical to an uninterrupted one.
     Under torchrun every process calls it (distributed.py); rank 0 writes the run folder.
     """
-    ranks = Ranks.join(config.device)
-    try:
-        return _train(config, ranks, resume, force, stop_after_epochs)
-    finally:
-        ranks.leave()
-
-
-def _train(config: TrainConfig, ranks: Ranks, resume: bool, force: bool, stop_after_epochs: int | None) -> Path:
+    ranks = Ranks.from_env()
     device = setup_torch(config.threads, config.device, ranks.local if ranks.world > 1 else None)
+    joined = ranks.join(device)
+    try:
+        return _train(config, ranks, device, resume, force, stop_after_epochs)
+    finally:
+        if joined:
+            ranks.leave()
+
+
+def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool, force: bool,
+           stop_after_epochs: int | None) -> Path:
     out = Path(config.out)
     last_path, best_path = out / "last.pt", out / "best.pt"
     if last_path.exists() and not resume and not force:
