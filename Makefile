@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects clean
+.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -48,6 +48,12 @@ bench-train: setup
 	$(PY) benchmarks/bench_train.py
 bench-objects: setup
 	$(PY) benchmarks/bench_objects.py
+## make bench-scale: frames/s on 1 and 2 local workers and on dask scheduler + workers; GFIE/GAFA projections.
+bench-scale: setup models
+	$(PY) benchmarks/bench_scale.py
+## make bench-crash: the long crash campaign (kill -9 at 60 random moments, resume, bit-for-bit store).
+bench-crash: setup
+	$(PY) benchmarks/bench_crash.py
 
 clean:
 	rm -rf out .pytest_cache

@@ -42,6 +42,9 @@ from .skeleton import N_JOINTS
 # 1.3: attrs["integrity"]; 1.4: frames/head_source
 SCHEMA_VERSION = "1.4"
 SOURCE_STAGES: tuple[str, ...] = ("head", "view")  # stages whose per-frame source is stored (frames/<stage>_source)
+# The root attributes of a store from its creation (`StoreWriter`) to its commit: ours, unfinished
+# (a rerun may replace it; pipeline/run.py refuses to replace a Zarr store with other attributes).
+UNFINISHED = {"ga3ce_prep": "unfinished"}
 SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
@@ -103,6 +106,7 @@ class StoreWriter:
                  scene_names: list[str] | None = None, overwrite: bool = False):
         self.path = str(path)
         self.root = zarr.open_group(self.path, mode="w" if overwrite else "w-")
+        self.root.attrs.put(dict(UNFINISHED))  # replaced by `commit`
         self.arrays: dict[str, zarr.Array] = {}
         self.buffers: dict[str, list[np.ndarray]] = {}
         for gname, spec in GROUPS.items():
@@ -169,7 +173,12 @@ class StoreWriter:
             self._push(f"failures/{name}", self._coerce(FAILURE_ARRAYS, f"failures/{name}", name, failures[name], n))
 
     def close(self, attrs: dict[str, Any], sources: dict[str, tuple[str, ...]] | None = None) -> None:
-        """Flush every buffer and write the root attributes (schema_version is set here).
+        """`flush`, then `commit`."""
+        self.flush(sources)
+        self.commit(attrs)
+
+    def flush(self, sources: dict[str, tuple[str, ...]] | None = None) -> None:
+        """Write every buffered row and the arrays' attributes: everything but the root attributes.
         sources: per stage of SOURCE_STAGES the names behind frames/<stage>_source's codes (its
         backend's sources; default: the stage's name alone)."""
         for key in self.arrays:
@@ -177,11 +186,16 @@ class StoreWriter:
         self.arrays["frames/scene"].attrs["names"] = list(self.scene_names)
         for stage in SOURCE_STAGES:
             self.arrays[f"frames/{stage}_source"].attrs["names"] = list((sources or {}).get(stage, (stage,)))
+
+    def commit(self, attrs: dict[str, Any]) -> None:
+        """Write the root attributes (validated first; schema_version and the integrity record, the
+        digests of every file `flush` left, are set here) in one write of the root metadata, after
+        everything else: until then the store reads as unfinished."""
         attrs = json.loads(json.dumps({**attrs, "schema_version": SCHEMA_VERSION}))  # as they will read back
         attrs["integrity"] = {"algorithm": "sha256", "files": file_digests(self.path)}
         attrs["integrity"]["attributes"] = _attributes_digest(attrs)
         validate_store_attrs(attrs)
-        self.root.attrs.update(attrs)
+        self.root.attrs.put(attrs)
 
 
 def _fs(path: str) -> tuple[Any, str]:

@@ -25,6 +25,7 @@ from ga3ce_prep.pipeline.lock import RunLock
 from ga3ce_prep.pipeline.tasks import Shard
 from ga3ce_prep.stages import STAGES
 from ga3ce_prep.store import open_store
+from ga3ce_prep.testing.stores import assert_same_store
 from ga3ce_prep.testing.worlds import SMALL
 
 PIPE = "synthetic"
@@ -33,19 +34,6 @@ SHARD = ["run.shard_size=3"]
 
 def _run(data, out, extra=(), **kw):
     return run_pipeline(PIPE, data, out, overrides=[*SMALL, *SHARD, *extra], progress=False, **kw)
-
-
-def assert_same_store(a, b, attrs=True):
-    sa, sb = open_store(a), open_store(b)
-    for group in ("frames", "objects", "failures"):
-        ga, gb = getattr(sa, group), getattr(sb, group)
-        assert sorted(ga) == sorted(gb)
-        for name in ga:
-            np.testing.assert_array_equal(ga[name], gb[name], err_msg=f"{group}/{name}")
-            assert ga[name].dtype == gb[name].dtype
-    assert sa.scene_names == sb.scene_names
-    if attrs:
-        assert sa.attrs == sb.attrs
 
 
 @pytest.fixture(scope="module")

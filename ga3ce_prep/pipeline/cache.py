@@ -1,15 +1,17 @@
 """The stage cache: one entry per stage and shard, written atomically, named by its key.
 
-    <work>/cache/<stage>/<key[:2]>/<key>.npz
+    <work>/cache/<stage>/<key[:2]>/<key>.npz      (<work>: a local directory or a URL)
 
 A key is the SHA-256 of the stage's backend, backend version, parameters, model files' SHA-256,
 data files' identity, and its upstream keys (the input stage's key hashes the shard's frames and
 their files' identity: path, size, modification time). So a changed parameter changes that
 stage's key and its dependents' keys only; everything else is found again. An entry is written to
 a temporary file in the same directory, fsynced and renamed into place (then the directory is
-fsynced), so a killed run never leaves a half-written entry under a real key. An entry that cannot
-be read back whole (a torn or truncated file, a flipped bit: each member's CRC-32 is checked) is
-removed with a warning and so computed again, in the same run (graph.py, run.py).
+fsynced), so a killed run never leaves a half-written entry under a real key. On object storage,
+where there is no rename, an entry is one PUT of its whole bytes (a multipart upload above 50 MB):
+the store shows the object only once it is complete, so the same holds without temporaries. An
+entry that cannot be read back whole (a torn or truncated file, a flipped bit: each member's CRC-32
+is checked) is removed with a warning and so computed again, in the same run (graph.py, run.py).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from .faults import fault
+from .location import Location, filesystem, is_remote
 
 log = logging.getLogger("ga3ce_prep.pipeline")
 
@@ -100,28 +103,49 @@ def _fsync_dir(path: Path) -> None:
 
 
 class Cache:
-    """Stage entries under `root` (a local directory every worker can reach)."""
+    """Stage entries under `root`: a local directory or a URL every worker can reach."""
 
-    def __init__(self, root: str | Path):
-        self.root = Path(root)
+    def __init__(self, root: Location):
+        self.remote = is_remote(root)
+        self.root: Location = str(root).rstrip("/") if self.remote else Path(root)
+        self.fs = filesystem(str(root), "the stage cache") if self.remote else None
 
     def remove_temporaries(self) -> None:
-        """Remove the temporary files a killed run left (only while holding the run lock)."""
-        for tmp in self.root.glob("*/*/.*.tmp"):
-            tmp.unlink(missing_ok=True)
+        """Remove the temporary files a killed run left (only while holding the run lock; a
+        remote cache has none)."""
+        if not self.remote:
+            for tmp in self.root.glob("*/*/.*.tmp"):
+                tmp.unlink(missing_ok=True)
 
-    def path(self, stage: str, key: str) -> Path:
-        return self.root / stage / key[:2] / f"{key}.npz"
+    def path(self, stage: str, key: str) -> Location:
+        name = f"{stage}/{key[:2]}/{key}.npz"
+        return f"{self.root}/{name}" if self.remote else self.root / name
 
     def has(self, stage: str, key: str) -> bool:
-        return self.path(stage, key).is_file()
+        p = self.path(stage, key)
+        return self.fs.exists(p) if self.remote else p.is_file()
+
+    def entries(self) -> set[tuple[str, str]]:
+        """(stage, key) of every entry, from one listing (a remote cache answers it in a few
+        requests, not one per entry)."""
+        if self.remote:
+            names = [f for f in self.fs.find(self.root) if f.endswith(".npz")]
+        else:
+            names = [str(p) for p in self.root.glob("*/*/*.npz")]
+        return {(parts[-3], parts[-1][:-len(".npz")]) for parts in (n.rsplit("/", 3) for n in names)}
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
         """The entry's arrays, or None if it is missing, damaged (a bad CRC-32, unreadable) or lacks
         its arrays (then it is removed)."""
         p = self.path(stage, key)
+        source: io.BytesIO | Path = p
+        if self.remote:
+            try:  # network errors are raised, not taken for a damaged entry
+                source = io.BytesIO(self.fs.cat_file(p))
+            except FileNotFoundError:
+                return None
         try:
-            data = p.read_bytes()
+            data = source.getvalue() if isinstance(source, io.BytesIO) else source.read_bytes()
             with zipfile.ZipFile(io.BytesIO(data)) as z:
                 bad = z.testzip()
             if bad is not None:
@@ -136,12 +160,20 @@ class Cache:
             return None
         except Exception as e:  # noqa: BLE001 - whatever a damaged file makes zipfile or numpy raise
             log.warning("cache entry %s is damaged (%s: %s): removed, it is computed again", p, type(e).__name__, e)
-            p.unlink(missing_ok=True)
+            self.fs.rm_file(p) if self.remote else p.unlink(missing_ok=True)
             return None
 
-    def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Path:
-        """Write an entry atomically (temp file, fsync, rename, fsync the directory)."""
+    def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Location:
+        """Write an entry atomically: locally a temp file, fsync, rename, fsync the directory;
+        remote one PUT of the whole entry."""
         p = self.path(stage, key)
+        if self.remote:
+            buf = io.BytesIO()
+            np.savez(buf, **arrays)
+            fault("cache.tmp")
+            self.fs.pipe_file(p, buf.getvalue())
+            fault("cache.saved")
+            return p
         p.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{key[:16]}.", suffix=".tmp", dir=p.parent)
         try:

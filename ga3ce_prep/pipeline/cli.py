@@ -15,7 +15,8 @@ import click
 @click.option("--data", "-d", required=True, type=click.Path(file_okay=False),
               help="Dataset root, in the format the pipeline's dataset.format names.")
 @click.option("--out", "-o", required=True,
-              help="Output store (a directory, e.g. out/gfie.zarr). An existing ga3ce-prep store of the same pipeline "
+              help="Output store: a directory (out/gfie.zarr) or an fsspec URL (s3://bucket/gfie.zarr, with s3fs "
+                   "installed; credentials from the environment). An existing ga3ce-prep store of the same pipeline "
                    "and dataset is replaced; anything else is refused (see --overwrite).")
 @click.option("--overwrite", is_flag=True,
               help="Replace a Zarr store at --out that ga3ce-prep did not write, or that another pipeline or dataset "
@@ -24,15 +25,15 @@ import click
               help="Run on a local dask cluster of N single-threaded worker processes. Default: the local "
                    "threaded scheduler.")
 @click.option("--scheduler", default=None,
-              help="Address of a running dask scheduler (tcp://host:8786); its workers must see --data, --out "
-                   "and the work directory at the same paths.")
+              help="Address of a running dask scheduler (tcp://host:8786); its workers must see --data at the same "
+                   "path, and the work directory at the same path or URL.")
 @click.option("--shard-size", type=int, default=None,
               help="Frames per shard (the unit of caching and of tasks). Default: the pipeline's run.shard_size.")
 @click.option("--limit", type=int, default=None,
               help="Process only the first N frames (in the dataset's order; N >= 1). Default: every frame.")
-@click.option("--work", type=click.Path(file_okay=False), default=None,
-              help="Work directory for its lock, the stage cache and finalize's scratch. Default: <out>.work (the "
-                   "output's own lock is <out>.lock)")
+@click.option("--work", default=None,
+              help="Work directory for its lock, the stage cache and finalize's scratch (local, or a URL when --out "
+                   "is one). Default: <out>.work (the output's own lock is <out>.lock)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
 @click.option("--models", "-m", type=click.Path(file_okay=False), default=None,

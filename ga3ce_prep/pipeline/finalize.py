@@ -1,10 +1,15 @@
 """Finalize: consolidate the shards' cache entries into the Zarr store, atomically.
 
-The store is written to `<work>/partial.zarr` shard by shard (memory: one shard's entries plus
-the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store, if
-any, is moved aside first and removed after). A run killed during finalize leaves no half store
-under `--out`; the next run writes it again from the cache. If `--out` already holds an intact
-store (`store.store_problems`) of the same run key (same frames, stages, parameters and inputs),
+A local store is written to `<work>/partial.zarr` shard by shard (memory: one shard's entries
+plus the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store,
+if any, is moved aside first and removed after). A store on object storage, where there is no
+rename, is committed by its root metadata instead: a store reads as finished only once its root
+attributes (schema_version, the run key, the integrity record) are there (`store.open_store`,
+`_finished_counts`), so the previous store's root attributes are removed first (one PUT), then its
+other objects, then the new arrays are written in place and the root attributes last (one PUT: the
+commit). Either way a run killed during finalize leaves no half store that reads as finished under
+`--out`; the next run writes it again from the cache. If `--out` already holds an intact store
+(`store.store_problems`) of the same run key (same frames, stages, parameters and inputs),
 finalize does nothing. A cache entry that is missing or damaged (`Cache.load` removes it) stops
 finalize with `LostEntries` once every shard has been looked at: the run computes them again and
 finalizes again (run.py).
@@ -28,9 +33,10 @@ import numpy as np
 from ..errors import StoreError
 from ..skeleton import N_JOINTS
 from ..stages import DROPS_FRAME, STAGES
-from ..store import SOURCE_STAGES, StoreWriter, store_problems
+from ..store import SOURCE_STAGES, UNFINISHED, StoreWriter, store_problems
 from .cache import Cache
 from .faults import fault
+from .location import Location, filesystem, is_remote
 from .tasks import Shard
 
 log = logging.getLogger("ga3ce_prep.pipeline")
@@ -147,21 +153,41 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
     return frames, objects, fail_rows
 
 
-def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: dict[str, Any],
+def finalize(shards: list[Shard], cache: Cache, out: Location, work: Location, attrs: dict[str, Any],
              run_key: str, sources: dict[str, tuple[str, ...]], progress: bool = True) -> tuple[FinalizeCounts, bool]:
-    """Write the store at `out` from the cache (see the module docstring). Returns the counts and
-    whether anything was written (False: `out` was already this run's store). sources: per stage
-    of store.SOURCE_STAGES the names behind frames/<stage>_source."""
-    from tqdm import tqdm
-
+    """Write the store at `out` (a local path or a URL) from the cache (see the module docstring).
+    Returns the counts and whether anything was written (False: `out` was already this run's
+    store). sources: per stage of store.SOURCE_STAGES the names behind frames/<stage>_source. A
+    local `out` needs a local `work`."""
     done = _finished_counts(out, run_key)
     if done is not None:
         return done, False
-    partial = work / "partial.zarr"
-    if partial.exists():
-        shutil.rmtree(partial)
+    if is_remote(out):
+        _uncommit(str(out))
+        target: Location = out
+    else:
+        target = Path(work) / "partial.zarr"
+        if target.exists():
+            shutil.rmtree(target)
+    writer = StoreWriter(target, overwrite=True)
+    counts = _write_shards(shards, cache, writer, progress)
+    writer.flush(sources)
+    attrs = {**attrs, "summary": asdict(counts), "run": {**attrs.get("run", {}), "key": run_key}}
+    if is_remote(out):
+        fault("finalize.swap")
+        writer.commit(attrs)
+    else:
+        writer.commit(attrs)
+        _swap(Path(target), Path(out), Path(work))
+    return counts, True
+
+
+def _write_shards(shards: list[Shard], cache: Cache, writer: StoreWriter, progress: bool) -> FinalizeCounts:
+    """Every shard's kept frames, objects and failure records, appended in order; LostEntries (nothing
+    appended past the first) when entries are missing or damaged, once every shard was looked at."""
+    from tqdm import tqdm
+
     counts = FinalizeCounts()
-    writer = StoreWriter(partial, overwrite=True)
     lost: list[str] = []
     for shard in tqdm(shards, desc="finalize", unit="shard", disable=not progress, leave=False):
         entries = _entries(cache, shard, lost)
@@ -179,8 +205,11 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
     if lost:
         raise LostEntries(lost)
     counts.obj_count_hist = {k: counts.obj_count_hist[k] for k in sorted(counts.obj_count_hist, key=int)}
-    attrs = {**attrs, "summary": asdict(counts), "run": {**attrs.get("run", {}), "key": run_key}}
-    writer.close(attrs, sources)
+    return counts
+
+
+def _swap(partial: Path, out: Path, work: Path) -> None:
+    """Rename the finished partial store over `out`, the previous store moved aside first."""
     _fsync_tree(partial)
     old = work / "previous.zarr"
     if old.exists():
@@ -192,7 +221,23 @@ def finalize(shards: list[Shard], cache: Cache, out: Path, work: Path, attrs: di
     os.rename(partial, out)
     if old.exists():
         shutil.rmtree(old)
-    return counts, True
+
+
+def _uncommit(out: str) -> None:
+    """Make the remote store at `out` (if any) read as unfinished, then remove all of it but its
+    root metadata (which StoreWriter replaces): first its root attributes go (one PUT), so no
+    moment shows a finished store with parts missing, and `out` is a store of ours throughout."""
+    import zarr
+
+    fs = filesystem(out)
+    root_meta = fs._strip_protocol(f"{out}/zarr.json")
+    if not fs.exists(root_meta):
+        return
+    zarr.open_group(out, mode="r+").attrs.put(dict(UNFINISHED))
+    fault("finalize.aside")
+    rest = [f for f in fs.find(out) if f != root_meta]
+    if rest:
+        fs.rm(rest)
 
 
 def _split_code(split: str) -> int:

@@ -14,7 +14,9 @@ neighbours' FrameRefs and pixels, not their stage outputs (their identities are 
 Schedulers: the local threaded scheduler by default (`workers=None`); `workers=N` starts a
 `distributed.LocalCluster` of N single-threaded worker processes (parallelism without the GIL:
 the stages are partly pure Python); `scheduler=ADDRESS` uses a running dask cluster, whose
-workers must see the same data, cache and output paths.
+workers must see the data at the same path, and the cache at the same path or URL (object
+storage needs no shared filesystem). A worker that dies is replaced by dask and its tasks run
+again: a task only ever adds complete cache entries, so a rerun task finds or rewrites them.
 """
 from __future__ import annotations
 
@@ -34,12 +36,13 @@ from .tasks import Shard, StageReport, TaskEnv, geometry_task, input_task, stage
 def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[str, int]]:
     """(the tasks to run, frames already cached per task kind)."""
     cache = Cache(env.cache_root)
+    present = cache.entries()
     kinds, after = task_stages(env.upstream), task_upstream(env.upstream)
     tasks: list[Delayed] = []
     cached = {k: 0 for k in kinds}
     for s in shards:
         made: dict[str, Delayed] = {}
-        todo = kinds_to_run(cache, env.upstream, s)
+        todo = kinds_to_run(cache, present, env.upstream, s)
         for kind in kinds:  # dependency order: a task's upstream tasks come first
             if kind not in todo:
                 cached[kind] += len(s.frames)
@@ -56,13 +59,14 @@ def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[
     return tasks, cached
 
 
-def kinds_to_run(cache: Cache, upstream: dict[str, tuple[str, ...]], shard: Shard) -> set[str]:
-    """The task kinds of `shard` to run: those with a missing entry, and those whose entries a task
-    to run reads but cannot (`Cache.load` removes a damaged entry, which is then computed in this run
+def kinds_to_run(cache: Cache, present: set[tuple[str, str]], upstream: dict[str, tuple[str, ...]],
+                 shard: Shard) -> set[str]:
+    """The task kinds of `shard` to run: those with a missing entry (not in `present`, the cache's
+    (stage, key) listing: `Cache.entries`), and those whose entries a task to run reads but cannot (`Cache.load` removes a damaged entry, which is then computed in this run
     instead of failing the task; the depth entry is the geometry task's own concern)."""
     kinds = task_stages(upstream)
     home = {st: k for k, stages in kinds.items() for st in stages}
-    todo = {k for k, stages in kinds.items() if not all(cache.has(st, shard.keys[st]) for st in stages)}
+    todo = {k for k, stages in kinds.items() if not all((st, shard.keys[st]) in present for st in stages)}
     checked: set[str] = set()
     while True:
         read = {u for k in todo for st in kinds[k] for u in upstream[st]} - {"depth"} - checked

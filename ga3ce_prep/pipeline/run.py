@@ -17,6 +17,9 @@ Order of a run (nothing is computed before every check has passed):
 
 The work directory (default `<out>.work/`) holds the lock, the cache and finalize's scratch; keep it
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
+`--out` and `--work` may be URLs of object storage (location.py): a remote store with its work
+directory beside it (the cache on object storage, for workers without a shared filesystem) or a
+local one; a local store needs a local work directory.
 """
 from __future__ import annotations
 
@@ -33,11 +36,12 @@ from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
 from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
-from ..store import SCHEMA_VERSION, SOURCE_STAGES, validate_store_attrs
+from ..store import SCHEMA_VERSION, SOURCE_STAGES, UNFINISHED, validate_store_attrs
 from .cache import Cache, file_identity, file_sha256, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, LostEntries, finalize
 from .graph import execute
+from .location import Location, absolute, filesystem, is_remote, join
 from .lock import RunLock
 from .tasks import Shard, StageReport, TaskEnv
 
@@ -148,11 +152,11 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     t0 = time.perf_counter()
     data_root = Path(data).resolve()
     conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models, overwrite)
+    work = _work_dir(work_dir, out_path)
     frames = _open_frames(conf, data_root, limit)
-    work = Path(work_dir) if work_dir else Path(f"{out_path}.work")
-    with RunLock(work, str(out_path)):
+    with RunLock(work, str(out_path)) as lock:
         _check_output(out_path, conf, data_root, overwrite)  # again: another run may have written it meanwhile
-        cache = Cache(work / "cache")
+        cache = Cache(join(work, "cache"))
         cache.remove_temporaries()  # left by a killed run; we hold the lock
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
@@ -166,6 +170,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
             reports, compute_seconds = reports + done, compute_seconds + seconds
             t_fin = time.perf_counter()
             try:
+                lock.check()
                 counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
                                            sources, progress=progress)
                 break
@@ -183,9 +188,9 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
 def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out: str | Path,
                     overrides: list[str] | dict[str, Any] | None, shard_size: int | None,
                     workers: int | None, models: str | Path | None = None,
-                    overwrite: bool = False) -> tuple[PipelineConfig, Path]:
-    """The validated pipeline (run options applied) and the output's absolute path, checked by
-    `_check_output`."""
+                    overwrite: bool = False) -> tuple[PipelineConfig, Location]:
+    """The validated pipeline (run options applied) and the output's absolute path or URL, checked
+    by `_check_output`."""
     conf = load_pipeline(pipeline, data_root, overrides, models=models)
     if shard_size is not None:
         if shard_size < 1:
@@ -193,22 +198,23 @@ def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out:
         conf.shard_size = int(shard_size)
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be at least 1, not {workers}")
-    if "://" in str(out):
-        raise ConfigError(f"--out {out}: remote stores are not supported by `run` yet (finalize renames a "
-                          "local directory into place); write locally and copy the store")
-    out_path = Path(out).resolve()
+    out_path = absolute(out)
     _check_output(out_path, conf, data_root, overwrite)
     return conf, out_path
 
 
-def _check_output(out: Path, conf: PipelineConfig, data_root: Path, overwrite: bool) -> None:
+def _check_output(out: Location, conf: PipelineConfig, data_root: Path, overwrite: bool) -> None:
     """Refuse to replace what a run must not: anything at `out` but a Zarr store; with `overwrite`
     false, also a Zarr store that is not a ga3ce-prep store (root attributes valid against
     schemas/store.schema.json), or one of another pipeline (name) or dataset (format and root).
     StoreError saying what is there and how to proceed."""
-    if not out.exists():
+    if is_remote(out):
+        exists, is_store = _probe(str(out))
+    else:
+        exists, is_store = out.exists(), any((out / m).is_file() for m in ZARR_MARKERS)
+    if not exists:
         return
-    if not any((out / m).is_file() for m in ZARR_MARKERS):
+    if not is_store:
         raise StoreError(f"--out {out} exists and is not a Zarr store: ga3ce-prep replaces only its own stores; "
                          "choose another --out, or move it away yourself")
     found = _other_store(out, conf, data_root)
@@ -216,7 +222,7 @@ def _check_output(out: Path, conf: PipelineConfig, data_root: Path, overwrite: b
         raise StoreError(f"--out {out} holds {found}; to replace it pass --overwrite, to keep it choose another --out")
 
 
-def _other_store(out: Path, conf: PipelineConfig, data_root: Path) -> str | None:
+def _other_store(out: Location, conf: PipelineConfig, data_root: Path) -> str | None:
     """What the Zarr store at `out` is, when it is not a ga3ce-prep store of this pipeline and
     dataset (None: it is, so a run may replace it)."""
     import zarr
@@ -225,6 +231,8 @@ def _other_store(out: Path, conf: PipelineConfig, data_root: Path) -> str | None
         attrs = dict(zarr.open_group(str(out), mode="r").attrs)
     except Exception as e:  # noqa: BLE001 - a damaged or unknown root: not known to be ours
         return f"a Zarr store whose root metadata cannot be read ({type(e).__name__}: {e})"
+    if attrs == UNFINISHED:
+        return None  # ours, killed before its commit (store.StoreWriter, finalize._uncommit)
     try:
         validate_store_attrs(attrs)
     except StoreError as e:
@@ -238,6 +246,33 @@ def _other_store(out: Path, conf: PipelineConfig, data_root: Path) -> str | None
     return (f"the ga3ce-prep store of pipeline {pipe!r} on the {ds['name']} dataset at {ds['root']} ({frames}"
             f"schema {attrs['schema_version']}), not this run's pipeline {conf.name!r} on the "
             f"{conf.dataset_format} dataset at {data_root}")
+
+
+def _probe(url: str) -> tuple[bool, bool]:
+    """(something is at the URL, a store's root metadata is), after checking that its bucket (the
+    URL's first component) is there and these credentials can read it."""
+    fs = filesystem(url)
+    bucket = fs._strip_protocol(url).lstrip("/").split("/")[0]
+    try:
+        if not fs.exists(bucket):
+            raise ConfigError(f"--out {url}: bucket {bucket} does not exist (or these credentials cannot see it); "
+                              "create it first")
+        return fs.exists(url), any(fs.exists(f"{url}/{m}") for m in ZARR_MARKERS)
+    except ConfigError:
+        raise
+    except Exception as e:  # noqa: BLE001 - credentials, endpoint, network: say which and stop
+        raise ConfigError(f"--out {url}: cannot reach it ({type(e).__name__}: {e}); check the credentials and "
+                          "endpoint (docs/pipeline.md, \"Object storage\")") from None
+
+
+def _work_dir(work_dir: str | Path | None, out: Location) -> Location:
+    """The work directory: --work, else `<out>.work` (on object storage too, beside the store). A
+    local store needs a local work directory (it is committed by a rename from there)."""
+    work = absolute(work_dir or f"{out}.work")
+    if is_remote(work) and not is_remote(out):
+        raise ConfigError(f"--work {work}: a local --out is committed by a rename from a local work directory; "
+                          "give a local --work, or write the store to object storage too")
+    return work
 
 
 def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> list[FrameRef]:

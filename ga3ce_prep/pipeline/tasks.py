@@ -43,6 +43,7 @@ from ..stages import call_backend, dependency_order
 from ..stages.base import DepthMap, Sourced
 from .cache import Cache
 from .config import StageConfig
+from .faults import fault
 
 VALUE_COLUMN = {"pose": "pose", "view": "view", "head": "head_pos"}  # a stage's per-frame value in its entry
 
@@ -68,7 +69,7 @@ class Shard:
 class TaskEnv:
     """What every task needs besides its shard (sent to workers once per task, small)."""
 
-    cache_root: Path
+    cache_root: Path | str  # a local directory or a URL
     data_root: Path
     stages: dict[str, StageConfig]
     upstream: dict[str, tuple[str, ...]]  # each stage's effective upstream (stages.upstream_of)
@@ -198,6 +199,7 @@ class StageEntry:
             return None
         finally:
             self.seconds += time.perf_counter() - t
+            fault("stage.frame")
 
     def attempt_batch(self, rows: list[int], fn: Callable[..., list], frames: list[FrameRef],
                       needs: dict[str, list[Any]]) -> None:

@@ -8,4 +8,7 @@ product path.
 - `photos`: scikit-image's photos as frames (RGB, an assumed K) for the real-model tests.
 - `amg_reference`: the automatic mask generator in the official order of operations (slow on
   purpose), what the fast generator is checked and timed against.
+- `cluster`: a dask cluster from the standard CLIs and moto's S3 server, on loopback.
+- `stores`: stores compared array for array and bit for bit.
+- `crash`: the crash campaign (kill -9 at random moments, resume, compare bit for bit).
 """

@@ -21,6 +21,7 @@ from ..params import field_docs
 from ..store import ContextStore, open_store
 from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
 from .dataset import ContextDataset
+from .distributed import Ranks
 from .evaluate import evaluate as run_eval, format_eval_table
 from .frameset import PROTOCOLS
 from .profiles import PROFILES, DatasetProfile
@@ -134,6 +135,7 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
     gradient clip 0.1, batch 32 on GFIE and 64 on GAFA, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
     and deterministic on CPU.
     Example: ga3ce-prep train --store synth.zarr --out runs/full --ablation no-d3
+    Data-parallel: torchrun --nproc-per-node 2 --no-python ga3ce-prep train ... (docs/training.md).
     """
     _log_setup()
     chosen = {k: v for k, v in (("rotation", rotation), ("encoding", encoding))
@@ -148,8 +150,9 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
     except (TypeError, ValueError) as e:
         raise ConfigError(f"model options: {e}") from None
     run = run_train(_train_config(store, out, model, **recipe), resume=resume, force=force)
-    click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
-    click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
+    if Ranks.from_env().main:  # under torchrun: once
+        click.echo(f"run folder: {run} (best.pt, last.pt, history.csv, curves.png)")
+        click.echo(f"next: ga3ce-prep eval --store {store} --checkpoint {run / 'best.pt'}")
 
 
 @click.command()

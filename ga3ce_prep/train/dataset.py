@@ -53,6 +53,10 @@ class Batch:
     def to(self, device: str | torch.device) -> "Batch":
         return Batch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
+    def rows(self, sl: slice) -> "Batch":
+        """Frames `sl` of the batch, with the same object slots."""
+        return Batch(**{f.name: getattr(self, f.name)[sl] for f in fields(self)})
+
     def __len__(self) -> int:
         return len(self.index)
 

@@ -7,7 +7,8 @@ uninterrupted one.
 
 A run folder holds: config.json, last.pt (written atomically after every epoch, with the optimiser,
 for --resume), best.pt (lowest validation 3D MAE), history.csv and curves.png (loss and val MAE per
-epoch). Python API: `train(TrainConfig(store=..., out=...)) -> run folder`.
+epoch). Python API: `train(TrainConfig(store=..., out=...)) -> run folder`. Under torchrun the
+same call trains data-parallel (distributed.py): the global batch stays `batch_size` frames.
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from ..store import ContextStore, open_store
 from .augment import view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
 from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
+from .distributed import Ranks
 from .evaluate import predict
 from .plots import plot_curves
 from .profiles import DatasetProfile
@@ -88,8 +90,9 @@ class TrainConfig:
         return self.view_noise == "on" or (self.view_noise == "auto" and profile.view_noise)
 
 
-def setup_torch(threads: int, device: str) -> torch.device:
-    """Thread count, deterministic algorithms, and the device (refusing cuda when absent)."""
+def setup_torch(threads: int, device: str, index: int | None = None) -> torch.device:
+    """Thread count, deterministic algorithms, and the device (refusing cuda when absent); index:
+    the GPU of this process (data-parallel training)."""
     torch.set_num_threads(threads)
     if device == "cuda":
         if not torch.cuda.is_available():
@@ -98,11 +101,11 @@ def setup_torch(threads: int, device: str) -> torch.device:
         torch.use_deterministic_algorithms(True, warn_only=True)
     else:
         torch.use_deterministic_algorithms(True)
-    return torch.device(device)
+    return torch.device(device, index) if device == "cuda" and index is not None else torch.device(device)
 
 
-def _epoch_seed(seed: int, epoch: int, stream: int) -> int:
-    return int(np.random.SeedSequence([seed, epoch, stream]).generate_state(1)[0])
+def _epoch_seed(seed: int, epoch: int, stream: int, rank: int = 0) -> int:
+    return int(np.random.SeedSequence([seed, epoch, stream, *([rank] if rank else [])]).generate_state(1)[0])
 
 
 def _write_history(history: list[dict[str, Any]], out: Path) -> None:
@@ -148,15 +151,16 @@ def _appearance_only(out: Path, state: dict[str, Any], model: GA3CE, epochs: int
     return out
 
 
-def train_step(model: GA3CE, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
-               grad_clip: float) -> torch.Tensor:
+def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
+               grad_clip: float, weight: float = 1.0) -> torch.Tensor:
     """One optimiser step on batch b with view prior `view` (B, 3) (augmented or not): forward,
     arccos loss, backward, gradient clipping at L2 norm grad_clip, AdamW at learning rate lr.
-    Returns the batch's mean loss (radians, detached)."""
+    weight scales the loss for the backward pass (data-parallel: this rank's share of the global
+    batch times the world size). Returns the batch's mean loss (radians, detached, unscaled)."""
     g = model(view, b.pose, b.head_pos, b.objects, b.mask)
     loss = angular_loss(g, b.gaze)
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    (loss * weight).backward()
     torch.nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], grad_clip)
     for group in optimizer.param_groups:
         group["lr"] = lr
@@ -172,14 +176,27 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     force). force without resume: overwrite an existing run. An existing run is otherwise refused.
     stop_after_epochs: return after this many epochs of this call (a time-boxed job); the run is
     then continued with resume=True and ends identical to an uninterrupted one.
+    Under torchrun every process calls it (distributed.py); rank 0 writes the run folder.
     """
-    device = setup_torch(config.threads, config.device)
+    ranks = Ranks.from_env()
+    device = setup_torch(config.threads, config.device, ranks.local if ranks.world > 1 else None)
+    joined = ranks.join(device)
+    try:
+        return _train(config, ranks, device, resume, force, stop_after_epochs)
+    finally:
+        if joined:
+            ranks.leave()
+
+
+def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool, force: bool,
+           stop_after_epochs: int | None) -> Path:
     out = Path(config.out)
     last_path, best_path = out / "last.pt", out / "best.pt"
     if last_path.exists() and not resume and not force:
         raise CheckpointError(f"{out} already holds a run (last.pt): pass --resume to continue it, "
                               "--force to overwrite it, or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
 
     # the data, and the configuration as the run folder records it
     store = open_store(config.store, verify=True)
@@ -188,8 +205,10 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     use_noise = config.uses_view_noise(train_ds.profile)
     batch_size = config.batch_size or train_ds.profile.batch_size
     cfg = config.to_dict()
-    (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise, "batch_size_resolved": batch_size,
-                                                 "store_fingerprint": fingerprint}, indent=2))
+    if ranks.main:
+        (out / "config.json").write_text(json.dumps({**cfg, "view_noise_resolved": use_noise,
+                                                     "batch_size_resolved": batch_size,
+                                                     "store_fingerprint": fingerprint}, indent=2))
 
     # the model (initial weights drawn from the seed); appearance only has nothing to train
     torch.manual_seed(config.seed)
@@ -197,7 +216,7 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
     state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
     prior = _mean_angle_deg(val_ds.view, val_ds.gaze) if val_ds else float("nan")
     if not config.model.use_context:
-        return _appearance_only(out, state, model, config.epochs, prior)
+        return _appearance_only(out, state, model, config.epochs, prior) if ranks.main else out
 
     # the optimiser, batches by object count, the per-step schedule
     params = [p for p in model.parameters() if p.requires_grad]
@@ -229,26 +248,34 @@ def train(config: TrainConfig, resume: bool = False, force: bool = False,
         log.warning("%s holds no last.pt: starting a new run", out)
 
     end_epoch = config.epochs if stop_after_epochs is None else min(config.epochs, start_epoch + stop_after_epochs)
+    net = ranks.wrap(model, device)
     for epoch in range(start_epoch, end_epoch):
         sampler.set_epoch(epoch)
-        torch.manual_seed(_epoch_seed(config.seed, epoch, 0))           # dropout
+        torch.manual_seed(_epoch_seed(config.seed, epoch, 0, ranks.rank))  # dropout
         noise_gen = torch.Generator().manual_seed(_epoch_seed(config.seed, epoch, 1))
         model.train()
         t0 = time.perf_counter()
         step = epoch * steps_per_epoch
         sum_loss, n_seen = 0.0, 0
         bar = tqdm(sampler.batches(), desc=f"epoch {epoch + 1}/{config.epochs}", unit="batch",
-                   disable=not config.progress, leave=False, dynamic_ncols=True)
+                   disable=not (config.progress and ranks.main), leave=False, dynamic_ncols=True)
         for idx in bar:
             b = train_ds.batch(idx, config.n_max).to(device)
             view = view_noise(b.view, noise_gen, config.view_noise_amplitude) if use_noise else b.view
+            rows = ranks.share(len(idx))  # the global batch's rows this rank trains on
+            n_rows = rows.stop - rows.start
+            take = rows if n_rows else slice(0, 1)  # no rows: one at weight 0 keeps the ranks in step
             lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
-            loss = train_step(model, optimizer, b, view, lr, config.grad_clip)
+            loss = train_step(net, optimizer, b.rows(take), view[take], lr, config.grad_clip,
+                              weight=n_rows * ranks.world / len(idx))
             step += 1
-            sum_loss += loss.item() * len(idx)
+            sum_loss += loss.item() * n_rows
             n_seen += len(idx)
             bar.set_postfix(loss=f"{loss.item():.4f}", mae=f"{np.degrees(sum_loss / n_seen):.2f}", lr=f"{lr:.2e}")
         seconds = time.perf_counter() - t0
+        sum_loss = ranks.sum(sum_loss, device)
+        if not ranks.main:
+            continue
 
         # validate, keep the best, checkpoint every epoch, log
         model.eval()
