@@ -130,6 +130,7 @@ def test_gfie_depth_units_are_inferred_recorded_and_stored_as_metres(synth_world
     code, _, err = _run(ga3ce, data, tmp_path / "s.zarr")
     assert code == 0, err
     s = open_store(tmp_path / "s.zarr")
+    assert s.attrs["dataset"]["units"]["depth"] == unit                  # recorded in the store's provenance
     np.testing.assert_array_equal(s.frames["id"], reference.frames["id"])
     np.testing.assert_allclose(s.frames["head_pos"], reference.frames["head_pos"], atol=1e-4)  # 3 m, not 300 or 3000
 

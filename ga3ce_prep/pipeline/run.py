@@ -153,7 +153,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     data_root = Path(data).resolve()
     conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models, overwrite)
     work = _work_dir(work_dir, out_path)
-    frames = _open_frames(conf, data_root, limit)
+    frames, read_as = _open_frames(conf, data_root, limit)
     with RunLock(work, str(out_path)) as lock:
         _check_output(out_path, conf, data_root, overwrite)  # again: another run may have written it meanwhile
         cache = Cache(join(work, "cache"))
@@ -161,6 +161,7 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         shards = _make_shards(conf, frames, data_root)
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
+        attrs["dataset"].update(read_as)  # the units the adapter assumed, and how they were decided
         sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
                    for st in SOURCE_STAGES}
         reports: list[StageReport] = []
@@ -275,8 +276,9 @@ def _work_dir(work_dir: str | Path | None, out: Location) -> Location:
     return work
 
 
-def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> list[FrameRef]:
-    """The dataset's frames (the first `limit`), in the adapter's order; ids checked unique."""
+def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> tuple[list[FrameRef], dict[str, Any]]:
+    """The dataset's frames (the first `limit`), in the adapter's order, ids checked unique; and what
+    the adapter says of how it read them (`DatasetAdapter.provenance`: the units assumed)."""
     from ..datasets import open_dataset
 
     try:
@@ -288,7 +290,7 @@ def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> li
         raise DatasetFormatError(f"{data_root}: the {conf.dataset_format} adapter found no frames")
     if len({f.id for f in frames}) != len(frames):
         raise DatasetFormatError(f"{data_root}: frame ids are not unique (adapter bug)")
-    return frames
+    return frames, adapter.provenance()
 
 
 def _make_shards(conf: PipelineConfig, frames: list[FrameRef], data_root: Path) -> list[Shard]:
