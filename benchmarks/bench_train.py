@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 
 import click
-import numpy as np
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
