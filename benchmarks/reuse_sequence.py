@@ -78,9 +78,14 @@ def compare(seg, frames: list, params) -> dict:
             "reuse_with_exact_within_2cm": round(float(r_in_e.mean()), 4) if len(r_in_e) else None}
 
 
+def _pct(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.1%}"
+
+
 def print_row(name: str, row: dict) -> None:
     print(f"{name}: {row['frames']} frames | exact {row['exact_s']:.2f} s/frame | reuse {row['reuse_s']:.2f} s/frame "
-          f"| {row['speedup']:.1f}x | prompts decoded {row['decoded_share_mean']:.1%} per frame "
-          f"({row['decoded_share_reuse_frames'] or 1:.1%} on reuse frames), key frames {row['key_frames']} "
-          f"| agreement within 2 cm: exact->reuse {row['exact_with_reuse_within_2cm']:.1%} of {row['exact_objects']}, "
-          f"reuse->exact {row['reuse_with_exact_within_2cm']:.1%} of {row['reuse_objects']}")
+          f"| {row['speedup']:.1f}x | prompts decoded {_pct(row['decoded_share_mean'])} per frame "
+          f"({_pct(row['decoded_share_reuse_frames'])} on reuse frames), key frames {row['key_frames']} "
+          f"{row['key_reasons']} | agreement within 2 cm: exact->reuse {_pct(row['exact_with_reuse_within_2cm'])} "
+          f"of {row['exact_objects']}, reuse->exact {_pct(row['reuse_with_exact_within_2cm'])} of {row['reuse_objects']}",
+          flush=True)

