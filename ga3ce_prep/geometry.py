@@ -114,7 +114,7 @@ def _grouped_valid_pixels(masks: np.ndarray, ok: np.ndarray, min_points: int):
     okf = ok.ravel()
     if masks.ndim == 3:  # (M, H, W) bool stack, masks may overlap
         M = masks.shape[0]
-        flat = masks.reshape(M, okf.size)  # (not -1: M may be 0)
+        flat = masks.reshape(M, okf.size)  # (not -1: no masks is a (0, H*W) stack)
         area = np.count_nonzero(flat, axis=1)
         mask_id, pix = np.nonzero(flat)  # row-major: grouped by mask already
         sel = okf[pix]

@@ -102,7 +102,7 @@ def test_mask_records_filter_and_cat_keep_rows_aligned():
         return amg.MaskRecords(iou=np.array(iou, np.float32), stability=np.arange(n, dtype=np.float32) + 10 * crop,
                                box=np.arange(4 * n).reshape(n, 4) + 100 * crop, point=np.zeros((n, 2)),
                                low_res=np.zeros((n, amg.LOW_RES, amg.LOW_RES), np.float32),
-                               crop_index=np.full(n, crop))
+                               crop_index=np.full(n, crop), prompt=np.arange(n))
     both = records([0.9, 0.8, 0.7], 0).cat(records([0.6], 1))
     assert both.crop_index.tolist() == [0, 0, 0, 1]
     picked = both.filter(np.array([3, 0]))                    # indices, in the order given

@@ -110,3 +110,11 @@ def test_object_positions_with_no_kept_mask_is_empty():
         assert res.xyz.shape == (0, 3)
         assert res.index.size == 0
     assert object_positions(depth, K, labels, min_points=10).n_dropped == 1
+
+
+def test_object_positions_of_no_masks_is_empty():
+    from ga3ce_prep.geometry import object_positions
+
+    K = np.array([[100.0, 0, 8], [0, 100.0, 6], [0, 0, 1]])
+    pos = object_positions(np.ones((12, 16), np.float32), K, np.zeros((0, 12, 16), bool), min_points=1)
+    assert pos.xyz.shape == (0, 3) and pos.n_dropped == 0

@@ -61,3 +61,38 @@ def test_backend_builds_its_segmenter_once_per_process_and_leaves_it_out_of_pick
     again, again_scores = clone.masks(frame, depth)
     np.testing.assert_array_equal(again, masks)
     np.testing.assert_array_equal(again_scores, scores)
+
+
+def test_reuse_sequence_runs_per_shard_and_is_named_in_the_provenance(synth_world, tmp_path):
+    """reuse: sequence through the pipeline: each shard's first frame of a sequence is a key frame
+    (the state starts afresh per shard), later frames reuse; the provenance names the generator."""
+    import threading
+
+    from ga3ce_prep.stages import backend_class
+    from ga3ce_prep.stages.base import BackendContext
+
+    out = tmp_path / "r.zarr"
+    args = ["run", "-p", "synthetic-mobilesam", "-d", str(synth_world), "-o", str(out), "--limit", "4", "-q",
+            "--set", f"stages.objects.params.encoder={ENC}", "--set", f"stages.objects.params.decoder={DEC}",
+            "--set", "stages.objects.params.reuse=sequence",
+            *[a for k, v in PARAMS.items() for a in ("--set", f"stages.objects.params.{k}={v}")]]
+    res = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    store = open_store(out)
+    assert len(store) == 4 and "reuse: sequence" in str(store.attrs)
+    # the backend itself: one sequence's frames in order, then a new shard
+    frames = sorted(open_dataset("gfie", synth_world), key=lambda f: (f.sequence, f.index))[:3]
+    b = backend_class("objects", "mobilesam")({"encoder": str(ENC), "decoder": str(DEC), "reuse": "sequence",
+                                                "reuse_max_changed": 1.0, **PARAMS}, BackendContext(synth_world))
+    depth = backend_class("depth", "oracle")({"truth": str(synth_world / "truth.h5")}, BackendContext(synth_world))
+    seq = lambda: b._sequences[threading.get_ident()][frames[0].sequence].last  # noqa: E731
+    b.start_shard()
+    steps = []
+    for f in frames:
+        b.masks(f, depth.depth(f))
+        steps.append(seq().key)
+    b.start_shard()
+    b.masks(frames[2], depth.depth(frames[2]))
+    assert steps + [seq().key] == [True, False, False, True]   # (random weights: every prompt changed, but
+    # reuse_max_changed 1 keeps the key frame)
+    assert b.provenance()["generator"] == "reuse: sequence"

