@@ -8,8 +8,10 @@ from click.testing import CliRunner
 from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 
 from ga3ce_prep.cli import cli
+from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
+from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
 
 torch.set_num_threads(2)
@@ -56,6 +58,23 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
     cfg = json.loads((a / "config.json").read_text())
     assert cfg["view_noise_resolved"] is True
     assert cfg["lr"] == 3e-4
+
+
+def test_object_augmentation_off_is_the_recipe_without_it_and_on_changes_the_weights(store, tmp_path, monkeypatch):
+    a = train(_cfg(store, tmp_path / "a"))                 # defaults: object_dropout 0, object_jitter 0
+    with monkeypatch.context() as m:                       # the trainer without the object augmentation step
+        m.setattr(trainer_module, "augment_objects", lambda b, *args: b)
+        b = train(_cfg(store, tmp_path / "b"))
+    assert _same(_weights(a), _weights(b))                 # bit-identical
+    c = train(_cfg(store, tmp_path / "c", object_dropout=0.5))
+    d = train(_cfg(store, tmp_path / "d", object_dropout=0.5))
+    e = train(_cfg(store, tmp_path / "e", object_jitter=0.1))
+    assert _same(_weights(c), _weights(d))                 # seeded: same seed, same weights
+    assert not _same(_weights(a), _weights(c)) and not _same(_weights(a), _weights(e))
+    cfg = json.loads((c / "config.json").read_text())
+    assert (cfg["object_dropout"], cfg["object_jitter"]) == (0.5, 0.0)
+    with pytest.raises(ConfigError, match="object_dropout"):
+        _cfg(store, tmp_path / "f", object_dropout=1.0)
 
 
 def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
