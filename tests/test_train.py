@@ -148,6 +148,22 @@ def test_ablate_table(store, tmp_path):
     assert ("the full model is best" in t) == s["full_best"]
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
+    # eval of the full row scores the no-objects row beside it (what the objects add), and says so
+    full, noobj = (tmp_path / "abl" / n / "seed0" / "best.pt" for n in ("full", "no-objects"))
+    r = evaluate(store, full, split="test", cdf_path=None)
+    assert r["no_objects_checkpoint"] == str(noobj)
+    m = r["methods"]
+    assert m["no_objects"]["mae3d"] == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
+    assert m["model"]["mae3d"] == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
+    assert r["beats"]["no_objects"] == (m["model"]["mae3d"] < m["no_objects"]["mae3d"])
+    table = format_eval_table(r)
+    assert "GA3CE, no objects (app. + pose)" in table
+    assert ("objects add" if r["beats"]["no_objects"] else "objects cost") in table
+    assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None)["methods"]
+    assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None)["methods"]
+    res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none", "--no-scenes"])
+    assert res.exit_code == 0, res.output
+    assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "GA3CE, no objects" in res.output
     # rerunning reuses the finished runs
     mtime = (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime
     ablate(base, tmp_path / "abl", rows=["full"])
