@@ -69,12 +69,14 @@ def test_object_augmentation_off_is_the_recipe_without_it_and_on_changes_the_wei
     c = train(_cfg(store, tmp_path / "c", object_dropout=0.5))
     d = train(_cfg(store, tmp_path / "d", object_dropout=0.5))
     e = train(_cfg(store, tmp_path / "e", object_jitter=0.1))
+    f = train(_cfg(store, tmp_path / "f", object_frame_dropout=0.5))
     assert _same(_weights(c), _weights(d))                 # seeded: same seed, same weights
-    assert not _same(_weights(a), _weights(c)) and not _same(_weights(a), _weights(e))
+    assert not any(_same(_weights(a), _weights(x)) for x in (c, e, f))
     cfg = json.loads((c / "config.json").read_text())
     assert (cfg["object_dropout"], cfg["object_jitter"]) == (0.5, 0.0)
-    with pytest.raises(ConfigError, match="object_dropout"):
-        _cfg(store, tmp_path / "f", object_dropout=1.0)
+    for bad in (dict(object_dropout=1.0), dict(object_frame_dropout=-0.1), dict(object_jitter=-1.0)):
+        with pytest.raises(ConfigError, match="object_dropout"):
+            _cfg(store, tmp_path / "g", **bad)
 
 
 def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):

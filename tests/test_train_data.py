@@ -165,6 +165,10 @@ def test_object_dropout_drops_the_expected_share_of_real_objects_only():
     assert torch.equal(object_dropout(mask, torch.Generator().manual_seed(0), 0.4), out)    # seeded
     assert not torch.equal(object_dropout(mask, torch.Generator().manual_seed(1), 0.4), out)
     assert torch.equal(object_dropout(mask, torch.Generator().manual_seed(0), 0.0), mask)
+    frames = object_dropout(mask, torch.Generator().manual_seed(0), 0.0, frame_p=0.25)
+    hidden = ~frames[:, :30].any(1)
+    assert torch.equal(frames, mask & ~hidden[:, None])    # a frame keeps all its objects or none
+    assert hidden.float().mean().item() == pytest.approx(0.25, abs=0.07)   # 400 frames: 1 sd = 0.022
 
 
 def test_object_jitter_has_the_set_spread():

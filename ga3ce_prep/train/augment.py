@@ -16,10 +16,13 @@ def view_noise(view: torch.Tensor, generator: torch.Generator, amplitude: float 
     return torch.nn.functional.normalize(view + eps.to(view.device), dim=-1, eps=1e-9)
 
 
-def object_dropout(mask: torch.Tensor, generator: torch.Generator, p: float) -> torch.Tensor:
+def object_dropout(mask: torch.Tensor, generator: torch.Generator, p: float, frame_p: float = 0.0) -> torch.Tensor:
     """mask (B, S) bool, True = real object -> (B, S): each real object independently dropped
-    (set False, i.e. treated as padding) with probability p; padding stays padding."""
+    (set False, i.e. treated as padding) with probability p, and all objects of a frame with
+    probability frame_p (the frame then sees the null token alone); padding stays padding."""
     keep = torch.rand(mask.shape, generator=generator) >= p
+    if frame_p > 0:
+        keep &= torch.rand(mask.shape[0], 1, generator=generator) >= frame_p
     return mask & keep.to(mask.device)
 
 
