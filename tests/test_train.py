@@ -8,8 +8,10 @@ from click.testing import CliRunner
 from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 
 from ga3ce_prep.cli import cli
+from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
+from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
 
 torch.set_num_threads(2)
@@ -56,6 +58,25 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
     cfg = json.loads((a / "config.json").read_text())
     assert cfg["view_noise_resolved"] is True
     assert cfg["lr"] == 3e-4
+
+
+def test_object_augmentation_off_is_the_recipe_without_it_and_on_changes_the_weights(store, tmp_path, monkeypatch):
+    a = train(_cfg(store, tmp_path / "a"))                 # defaults: object_dropout 0, object_jitter 0
+    with monkeypatch.context() as m:                       # the trainer without the object augmentation step
+        m.setattr(trainer_module, "augment_objects", lambda b, *args: b)
+        b = train(_cfg(store, tmp_path / "b"))
+    assert _same(_weights(a), _weights(b))                 # bit-identical
+    c = train(_cfg(store, tmp_path / "c", object_dropout=0.5))
+    d = train(_cfg(store, tmp_path / "d", object_dropout=0.5))
+    e = train(_cfg(store, tmp_path / "e", object_jitter=0.1))
+    f = train(_cfg(store, tmp_path / "f", object_frame_dropout=0.5))
+    assert _same(_weights(c), _weights(d))                 # seeded: same seed, same weights
+    assert not any(_same(_weights(a), _weights(x)) for x in (c, e, f))
+    cfg = json.loads((c / "config.json").read_text())
+    assert (cfg["object_dropout"], cfg["object_jitter"]) == (0.5, 0.0)
+    for bad in (dict(object_dropout=1.0), dict(object_frame_dropout=-0.1), dict(object_jitter=-1.0)):
+        with pytest.raises(ConfigError, match="object_dropout"):
+            _cfg(store, tmp_path / "g", **bad)
 
 
 def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
@@ -129,6 +150,22 @@ def test_ablate_table(store, tmp_path):
     assert ("the full model is best" in t) == s["full_best"]
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
+    # eval of the full row scores the no-objects row beside it (what the objects add), and says so
+    full, noobj = (tmp_path / "abl" / n / "seed0" / "best.pt" for n in ("full", "no-objects"))
+    r = evaluate(store, full, split="test", cdf_path=None)
+    assert r["no_objects_checkpoint"] == str(noobj)
+    m = r["methods"]
+    assert m["no_objects"]["mae3d"] == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
+    assert m["model"]["mae3d"] == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
+    assert r["beats"]["no_objects"] == (m["model"]["mae3d"] < m["no_objects"]["mae3d"])
+    table = format_eval_table(r)
+    assert "GA3CE, no objects (app. + pose)" in table
+    assert ("objects add" if r["beats"]["no_objects"] else "objects cost") in table
+    assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None)["methods"]
+    assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None)["methods"]
+    res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none", "--no-scenes"])
+    assert res.exit_code == 0, res.output
+    assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "GA3CE, no objects" in res.output
     # rerunning reuses the finished runs
     mtime = (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime
     ablate(base, tmp_path / "abl", rows=["full"])

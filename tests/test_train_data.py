@@ -10,7 +10,7 @@ from ga3ce_prep.geometry import angular_error_deg
 from ga3ce_prep.model import GA3CE
 from ga3ce_prep.store import StoreWriter, open_store
 from ga3ce_prep.train import BucketBatchSampler, ContextDataset, DatasetProfile, collate, store_fingerprint
-from ga3ce_prep.train.augment import view_noise
+from ga3ce_prep.train.augment import object_dropout, object_jitter, view_noise
 from ga3ce_prep.skeleton import head_direction_from_pose
 from ga3ce_prep.train.baselines import choose_snap_cone, snap_to_object
 from ga3ce_prep.train.metrics import angular_errors_2d, summarize
@@ -152,6 +152,32 @@ def test_view_noise_shift():
     assert ang.max() < 61.0
     np.testing.assert_allclose(out.norm(dim=-1).numpy(), 1.0, atol=1e-6)
     torch.testing.assert_close(view_noise(v, torch.Generator().manual_seed(1)), out)
+
+
+def test_object_dropout_drops_the_expected_share_of_real_objects_only():
+    mask = torch.zeros(400, 50, dtype=torch.bool)
+    mask[:, :30] = True                                    # 30 real objects, 20 padding slots per frame
+    out = object_dropout(mask, torch.Generator().manual_seed(0), 0.4)
+    assert not out[:, 30:].any()                           # padding stays padding
+    assert not (out & ~mask).any()
+    kept = out[:, :30].float().mean().item()
+    assert kept == pytest.approx(0.6, abs=0.01)            # 12,000 draws: 1 sd = 0.0045
+    assert torch.equal(object_dropout(mask, torch.Generator().manual_seed(0), 0.4), out)    # seeded
+    assert not torch.equal(object_dropout(mask, torch.Generator().manual_seed(1), 0.4), out)
+    assert torch.equal(object_dropout(mask, torch.Generator().manual_seed(0), 0.0), mask)
+    frames = object_dropout(mask, torch.Generator().manual_seed(0), 0.0, frame_p=0.25)
+    hidden = ~frames[:, :30].any(1)
+    assert torch.equal(frames, mask & ~hidden[:, None])    # a frame keeps all its objects or none
+    assert hidden.float().mean().item() == pytest.approx(0.25, abs=0.07)   # 400 frames: 1 sd = 0.022
+
+
+def test_object_jitter_has_the_set_spread():
+    objects = torch.randn(200, 40, 3, generator=torch.Generator().manual_seed(2))
+    out = object_jitter(objects, torch.Generator().manual_seed(3), 0.1)
+    d = out - objects
+    assert d.mean().abs().item() < 0.003                   # 24,000 draws: 1 sd of the mean = 0.0006
+    assert d.std().item() == pytest.approx(0.1, rel=0.02)
+    assert torch.equal(object_jitter(objects, torch.Generator().manual_seed(3), 0.1), out)
 
 
 def test_warmup_cosine_schedule():

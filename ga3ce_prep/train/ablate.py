@@ -93,7 +93,8 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             if force or not _run_done(run, cfg.epochs):
                 log.info("ablation %s, seed %d: training into %s", name, seed, run)
                 train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
-            r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads)
+            r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads,
+                         no_objects=None)
             maes.append(r["methods"]["model"]["mae3d"])
             prior_mae = r["methods"]["view_prior"]["mae3d"]
             evals.append(r)

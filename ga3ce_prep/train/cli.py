@@ -178,22 +178,27 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
               help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns (AUC, L2, 3D distance, 3D angle) "
               "for GFIE, Ours and Ours + GFM, from the frames' images and depth (GFIE or CAD-120 stores).")
 @click.option("--gfm-batch-size", default=16, show_default=True, help="With --gfm: frames per pass of GFIE's network.")
+@click.option("--no-objects", "no_objects", default="auto", show_default=True, metavar="auto|none|CHECKPOINT",
+              help="A checkpoint of the model without objects to score beside this one (what the objects add); auto = "
+              "OUT/no-objects/seed<k>/best.pt when --checkpoint is an ablate folder's OUT/full/seed<k>/best.pt.")
 def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_size, threads, no_scenes, frames, data,
-             force, gfm, gfm_batch_size):
+             force, gfm, gfm_batch_size, no_objects):
     """Evaluate a checkpoint: 3D/2D MAE, front/back, per scene, and the baselines on the same frames.
 
     \b
     Frames: the dataset's own rows for the split (re-read from the dataset the store was built
     from), every one accounted for: "scored N of M" and the reasons for the rest (the JSON lists
     their ids). Baselines: the view prior v, the head direction from the pose keypoints, and v
-    snapped to the nearest object within a cone. The table says whether the model beats each.
+    snapped to the nearest object within a cone; and, in an ablate folder (or with --no-objects), the
+    model trained without objects. The table says whether the model beats each.
     With --gfm, GFIE's gaze-following network adds GFIE's Table 1 (docs/training.md, "GFIE's
     gaze-following modules").
     """
     _log_setup()
     r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device, batch_size=batch_size,
                  snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
-                 threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size)
+                 threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size,
+                 no_objects=None if no_objects == "none" else no_objects)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
     if "cdf_png" in r:
         click.echo(f"\nCDF plot: {r['cdf_png']}")

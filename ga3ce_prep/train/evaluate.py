@@ -38,7 +38,8 @@ from .profiles import DatasetProfile
 
 log = logging.getLogger("ga3ce_prep.train")
 
-METHODS = {"model": "GA3CE (model)", "view_prior": "v prior (appearance only)",
+METHODS = {"model": "GA3CE (model)", "no_objects": "GA3CE, no objects (app. + pose)",
+           "view_prior": "v prior (appearance only)",
            "head_from_pose": "head direction from pose", "snap_to_object": "snap v to object"}
 DEFAULT_SNAP_CONE_DEG = 15.0
 
@@ -55,6 +56,16 @@ def predict(model: GA3CE, ds: ContextDataset, batch_size: int = 256, device: str
         out[idx] = model(b.view, b.pose, b.head_pos, b.objects, b.mask).cpu().numpy()
     model.train(was_training)
     return out
+
+
+def no_objects_checkpoint(checkpoint: str | Path) -> Path | None:
+    """The `no-objects` ablation's checkpoint beside a full model's in an `ablate` folder
+    (OUT/full/seed<k>/best.pt -> OUT/no-objects/seed<k>/best.pt), or None when it is not there."""
+    p = Path(checkpoint)
+    if p.parent.parent.name != "full":
+        return None
+    other = p.parent.parent.parent / "no-objects" / p.parent.name / p.name
+    return other if other.is_file() else None
 
 
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
@@ -76,7 +87,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
              force: bool = False, device: str = "cpu", batch_size: int = 256,
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
              json_path: str | Path | None = None, threads: int = 2, frames: str = "auto",
-             data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16) -> dict[str, Any]:
+             data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16,
+             no_objects: str | Path | None = "auto") -> dict[str, Any]:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store (e.g. cross-dataset).
@@ -86,7 +98,9 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     protocol, DatasetProfile.eval_frames), "windows" (GAFA's) or "all" (every frame). data: the
     dataset's root when it is not where the store's provenance says. gfm: GFIE's checkpoint, to add
     GFIE's Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth,
-    gfm_batch_size frames per pass). Returns a dict: store, split, checkpoint, epoch, n_frames
+    gfm_batch_size frames per pass). no_objects: a checkpoint of the model without objects to score
+    beside this one (method "no_objects"), "auto" = `no_objects_checkpoint(checkpoint)` when there
+    (an `ablate` folder), None = none. Returns a dict: store, split, checkpoint, epoch, n_frames
     (scored), frames (train/frameset.py ScoredFrames.as_dict: protocol, expected, scored, unscored
     {reason: [ids]}), head_sources {source: scored frames}, head_fallback_frames (scored frames whose
     head position came from a fallback), snap_cone_deg, methods {name: summarize(...)},
@@ -108,6 +122,11 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
                           "choose another --split or --frames all")
     model = build_model(ckpt).to(device)
     preds = {"model": predict(model, ds, batch_size, device, ckpt["config"].get("n_max"))}
+    no_objects = no_objects_checkpoint(checkpoint) if no_objects == "auto" else no_objects
+    if no_objects is not None:
+        other = load_checkpoint(no_objects)
+        check_checkpoint(other, no_objects, store_fingerprint(st), None, force=force)
+        preds["no_objects"] = predict(build_model(other).to(device), ds, batch_size, device, other["config"].get("n_max"))
     preds["view_prior"] = ds.view
     preds["head_from_pose"], pose_ok = head_direction_from_pose(ds.pose, ds.view)
     if snap_cone_deg is None:
@@ -130,6 +149,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         head_fallback = int((codes != 0).sum())
     result: dict[str, Any] = {
         "store": str(st.path), "split": split, "checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]) + 1,
+        "no_objects_checkpoint": None if no_objects is None else str(no_objects),
         "config": ckpt["config"], "dataset": profile.name, "n_frames": len(ds), "frames": fs.as_dict(),
         "head_sources": head_sources, "head_fallback_frames": head_fallback, "snap_cone_deg": snap_cone_deg,
         "head_from_pose_frames": int(pose_ok.sum()), "snapped_frames": int(snapped.sum()),
@@ -185,6 +205,8 @@ def format_scene_table(result: dict[str, Any]) -> list[str]:
     w = 13
     lines = ["per scene: 3D / 2D MAE (deg); All over frames", f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
     for key, label in METHODS.items():
+        if key not in m:
+            continue
         ps = m[key]["per_scene"]
         cells = [_cell(ps[c]["mae3d"], ps[c]["mae2d"]) for c in cols] + [_cell(m[key]["mae3d"], m[key]["mae2d"])]
         lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in cells))
@@ -207,6 +229,8 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
     per_window = " (front/back per window)" if result["frames"]["protocol"] == "windows" else ""
     lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} {'front3D':>7s} {'back3D':>7s}{per_window}")
     for key, label in METHODS.items():
+        if key not in m:
+            continue
         if key == "snap_to_object":
             label = f"{label} (cone {result['snap_cone_deg']:g} deg)"
         r = m[key]
@@ -218,7 +242,8 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
     for key, beats in result["beats"].items():
         d = m[key]["mae3d"] - m["model"]["mae3d"]
         lines.append(f"  {'beats' if beats else 'does NOT beat'} {METHODS[key]}: "
-                     f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f})")
+                     f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f}"
+                     + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key]['mae3d']:.0%})" if key == "no_objects" else ")"))
     if per_scene and (len(result["scene_columns"]) > 1 or result.get("paper_rows")):
         lines += ["", *format_scene_table(result)]
     if "gfm" in result:

@@ -18,7 +18,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -29,7 +29,7 @@ from tqdm import tqdm
 from ..errors import ConfigError
 from ..model import GA3CE, ModelConfig, angular_loss
 from ..store import ContextStore, open_store
-from .augment import view_noise
+from .augment import object_dropout, object_jitter, view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
 from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
 from .distributed import Ranks
@@ -55,6 +55,9 @@ class TrainConfig:
     grad_clip: float = 0.1  # clip the gradient's global L2 norm to this (the paper's)
     view_noise: Literal["auto", "on", "off"] = "auto"  # augment v <- normalise(v + eps): on, off, or auto = as the paper on this dataset (DatasetProfile: on for GFIE)
     view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
+    object_dropout: float = 0.0  # probability of dropping each object token of a training frame (ours, 0 = the paper's recipe): docs/training.md "What the objects add"
+    object_frame_dropout: float = 0.0  # probability of hiding all objects of a training frame (ours, 0 = the paper's recipe): the model also learns to do without them
+    object_jitter: float = 0.0  # std of Gaussian noise added to each object position in training, metres (ours, 0 = the paper's recipe)
     seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
     device: Literal["cpu", "cuda"] = "cpu"  # where to train
     threads: int = 2  # CPU threads of torch (keep at the number of free cores)
@@ -72,6 +75,9 @@ class TrainConfig:
             raise ConfigError(f"view_noise must be auto, on or off, got {self.view_noise!r}")
         if self.epochs < 1 or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs ({self.epochs}) and batch_size ({self.batch_size}) must be >= 1")
+        if not (0.0 <= self.object_dropout < 1.0 and 0.0 <= self.object_frame_dropout < 1.0) or self.object_jitter < 0:
+            raise ConfigError(f"object_dropout and object_frame_dropout must be in [0, 1) and object_jitter >= 0, got "
+                              f"{self.object_dropout}, {self.object_frame_dropout} and {self.object_jitter}")
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device must be cpu or cuda, got {self.device!r}")
 
@@ -149,6 +155,18 @@ def _appearance_only(out: Path, state: dict[str, Any], model: GA3CE, epochs: int
     _write_history(history, out)
     log.info("appearance only (use_context off): g = v, nothing to train")
     return out
+
+
+def augment_objects(b: Batch, generator: torch.Generator, dropout: float, frame_dropout: float,
+                    jitter: float) -> Batch:
+    """b with each real object dropped with probability `dropout`, all objects of a frame with
+    probability `frame_dropout`, and each position moved by N(0, jitter^2) metres per coordinate
+    (training only); b itself, no draw, when all are 0."""
+    if dropout > 0 or frame_dropout > 0:
+        b = replace(b, mask=object_dropout(b.mask, generator, dropout, frame_dropout))
+    if jitter > 0:
+        b = replace(b, objects=object_jitter(b.objects, generator, jitter))
+    return b
 
 
 def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
@@ -253,6 +271,7 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
         sampler.set_epoch(epoch)
         torch.manual_seed(_epoch_seed(config.seed, epoch, 0, ranks.rank))  # dropout
         noise_gen = torch.Generator().manual_seed(_epoch_seed(config.seed, epoch, 1))
+        object_gen = torch.Generator().manual_seed(_epoch_seed(config.seed, epoch, 2))
         model.train()
         t0 = time.perf_counter()
         step = epoch * steps_per_epoch
@@ -262,6 +281,7 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
         for idx in bar:
             b = train_ds.batch(idx, config.n_max).to(device)
             view = view_noise(b.view, noise_gen, config.view_noise_amplitude) if use_noise else b.view
+            b = augment_objects(b, object_gen, config.object_dropout, config.object_frame_dropout, config.object_jitter)
             rows = ranks.share(len(idx))  # the global batch's rows this rank trains on
             n_rows = rows.stop - rows.start
             take = rows if n_rows else slice(0, 1)  # no rows: one at weight 0 keeps the ranks in step
