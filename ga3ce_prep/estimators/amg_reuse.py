@@ -18,9 +18,11 @@ A prompt is decoded again when a changed cell lies within `reuse_neighbourhood` 
 when its candidate that won the key frame's NMS covers a changed cell (a mask the person now
 crosses or left: the wall behind them); every other prompt keeps its key-frame candidates. Only
 NMS winners count, so a wall's hundred duplicate prompts are not all decoded again: the winner's
-new mask still comes first in NMS (same score, earlier prompt) and suppresses its stale duplicates
-as in the exact run. The merged candidates, in prompt order as the
-exact generator lists them, then go through NMS as usual. A frame is a key frame (all prompts
+new mask still comes first in NMS (same score, earlier prompt). A key-frame candidate that is not
+decoded again but whose own mask reaches into a changed cell is dropped rather than reused: it is
+stale (the duplicate of a winner that was decoded again and may have changed, so nothing would
+suppress it). The merged candidates, in prompt order as the exact generator lists them, then go
+through NMS as usual. A frame is a key frame (all prompts
 decoded, the state renewed) when it is the sequence's first, follows a gap in raw frame numbers,
 comes `reuse_max_age` frames after the key frame, or would decode more than `reuse_max_changed` of
 the prompts. The full-image crop only (crop_n_layers 0).
@@ -94,6 +96,7 @@ class _Key:
     depth: np.ndarray | None   # (h, w) float32 metres
     person: np.ndarray         # (64, 64) bool cells of the key frame's person boxes
     records: amg.MaskRecords   # the candidates that passed the filters, before NMS, `prompt` set
+    cells: np.ndarray          # (n, 64, 64) bool cells each of `records`' masks covers
     won: np.ndarray            # (w,) int64 prompts of the candidates that won the key frame's NMS
     footprint: np.ndarray      # (w, 64, 64) bool cells those candidates' masks cover
 
@@ -147,6 +150,7 @@ class SequenceReuse:
         self.cues: FrameCues | None = None
         self.last: ReuseStep | None = None
         self._person: np.ndarray | None = None
+        self._changed: np.ndarray | None = None
 
     def start(self, cues: FrameCues) -> None:
         """The frame about to be segmented."""
@@ -174,7 +178,7 @@ class SequenceReuse:
                   "age" if self.age + 1 >= self.p.reuse_max_age else "")
         decode = None
         if not reason:
-            changed = self.changed_cells(embedding)
+            changed = self._changed = self.changed_cells(embedding)
             cell = np.clip(np.floor(coords / CELL).astype(np.int64), 0, GRID - 1)     # (n, 2) x, y
             decode = dilate(changed, self.p.reuse_neighbourhood)[cell[:, 1], cell[:, 0]]
             decode[k.won[k.footprint[:, changed].any(axis=1)]] = True
@@ -191,10 +195,12 @@ class SequenceReuse:
             emb = np.ascontiguousarray(embedding.reshape(-1, GRID, GRID), np.float32)
             self.key = _Key(c.index, c.image_hw, emb, float(np.linalg.norm(emb, axis=0).mean()),
                             None if c.depth is None else np.array(c.depth, np.float32), self._person,
-                            decoded, np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool))
+                            decoded, mask_cells(decoded.low_res), np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool))
             self.age, out = 0, decoded
         else:
-            kept = self.key.records.filter(~plan[self.key.records.prompt])
+            k = self.key
+            stale = k.cells[:, self._changed].any(axis=1)     # kept candidates reaching into a changed cell
+            kept = k.records.filter(~plan[k.records.prompt] & ~stale)
             out = kept.cat(decoded)
             out = out.filter(np.argsort(out.prompt, kind="stable"))
             self.age += 1
