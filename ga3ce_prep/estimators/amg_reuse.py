@@ -210,6 +210,6 @@ class SequenceReuse:
     def settle(self, keep: np.ndarray) -> None:
         """The rows of `merge`'s result that won NMS: on a key frame, remembered with their masks' cells."""
         if self.last is not None and self.last.key:
-            won = self.key.records.filter(np.asarray(keep, np.int64))
-            self.key = replace(self.key, won=won.prompt, footprint=mask_cells(won.low_res))
+            keep = np.asarray(keep, np.int64)    # rows of the key's records (merge returned them as they are)
+            self.key = replace(self.key, won=self.key.records.prompt[keep], footprint=self.key.cells[keep])
 
