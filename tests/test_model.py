@@ -125,7 +125,7 @@ def test_encoding_widths():
 
 
 @pytest.mark.parametrize("cfg", [ModelConfig(), ModelConfig(rotation="axis_angle", encoding="standard"),
-                                 ModelConfig(rotation="none", use_pose=False)])
+                                 ModelConfig(rotation="none", use_pose=False), ModelConfig(output="regress")])
 def test_padding_does_not_change_prediction(cfg):
     torch.manual_seed(0)
     m = GA3CE(cfg).eval()
@@ -142,9 +142,10 @@ def test_padding_does_not_change_prediction(cfg):
     torch.testing.assert_close(g.norm(dim=-1), torch.ones(5), atol=1e-6, rtol=0)
 
 
-def test_zero_objects_and_missing_pose_are_valid_samples():
+@pytest.mark.parametrize("output", ["pointer", "regress"])
+def test_zero_objects_and_missing_pose_are_valid_samples(output):
     torch.manual_seed(0)
-    m = GA3CE().eval()
+    m = GA3CE(ModelConfig(output=output)).eval()
     view, pose, head, objects, mask = _scene(B=4, S=6)
     pose = pose.float()
     pose[1] = float("nan")
@@ -153,7 +154,7 @@ def test_zero_objects_and_missing_pose_are_valid_samples():
         g = m(view, pose, head, objects, mask)
         g0 = m(view, pose, head, objects[:, :0], mask[:, :0])   # nobody has objects
         no_obj = GA3CE(ModelConfig(use_objects=False)).eval()
-        no_obj.load_state_dict(m.state_dict())
+        no_obj.load_state_dict(m.state_dict(), strict=False)      # the pointer's weights stay out
         a = no_obj(view, pose, head, objects, mask)
         b = no_obj(view, pose, head, torch.randn_like(objects), torch.ones_like(mask))
     assert torch.isfinite(g).all()
@@ -165,7 +166,7 @@ def test_zero_objects_and_missing_pose_are_valid_samples():
 
 def test_residual_output_and_appearance_only():
     view, pose, head, objects, mask = _scene(B=4)
-    m = GA3CE().eval()
+    m = GA3CE(ModelConfig(output="regress")).eval()
     for p in m.head.net[-1].parameters():  # g' = 0 -> g = v
         torch.nn.init.zeros_(p)
     with torch.no_grad():
@@ -225,8 +226,9 @@ def test_model_gradient_finite_through_whole_model():
 SMALL = dict(num_encoder_layers=1, num_decoder_layers=2, dim_feedforward=128, head_hidden=128)
 
 
-@pytest.mark.parametrize("cfg", [ModelConfig(**SMALL), ModelConfig(cone_bias=False, rotation="none", **SMALL),
-                                 ModelConfig(use_objects=False, **SMALL)])
+@pytest.mark.parametrize("cfg", [ModelConfig(output="regress", **SMALL),
+                                 ModelConfig(output="regress", cone_bias=False, rotation="none", **SMALL),
+                                 ModelConfig(use_objects=False, **SMALL), ModelConfig(**SMALL)])
 @pytest.mark.parametrize("grad", [False, True])
 def test_attention_hook_leaves_outputs_identical(cfg, grad):
     torch.manual_seed(0)
@@ -239,7 +241,7 @@ def test_attention_hook_leaves_outputs_identical(cfg, grad):
         g_hooked, w = m.cross_attention(*x)
         g_after = m(*x)
     assert torch.equal(g, g_hooked) and torch.equal(g, g_after)       # bit-identical, and the hooks are gone
-    S = 8 if cfg.use_objects else 0
+    S = 8 if cfg.use_objects and cfg.output == "regress" else 0   # the pointer's decoder sees the null token alone
     assert w.shape == (5, cfg.num_decoder_layers, cfg.n_heads, 1 + S)
     torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[:-1]), atol=1e-6, rtol=0)   # sums to 1 over [null, objects]
     assert (w >= 0).all()
@@ -248,6 +250,58 @@ def test_attention_hook_leaves_outputs_identical(cfg, grad):
         torch.testing.assert_close(w[2, ..., 0], torch.ones(w.shape[1:3]))                  # no objects: the null token
     else:
         assert (w == 1).all()
+
+
+def test_pointer_first_pass_is_the_network_without_objects():
+    torch.manual_seed(0)
+    two = GA3CE(ModelConfig(**SMALL)).eval()                 # the default: output pointer
+    one = GA3CE(ModelConfig(output="regress", **SMALL)).eval()
+    missing, unexpected = one.load_state_dict(two.state_dict(), strict=False)   # same weights, no pointer
+    assert not missing and all(k.startswith("pointer.") for k in unexpected)
+    view, pose, head, objects, mask = _scene(B=5, S=8)
+    x = (view, pose.float(), head, objects, mask)
+    with torch.no_grad():
+        g0, g = two(*x, all_passes=True)
+        torch.testing.assert_close(g0, one(view, pose.float(), head, objects[:, :0], mask[:, :0]))   # g0: no objects
+        assert torch.equal(g, two(*x))                        # forward's g is the last pass
+        g_w, p = two.object_weights(*x)
+    assert torch.equal(g_w, g) and p.shape == (5, 9)
+    torch.testing.assert_close(p.sum(-1), torch.ones(5))
+    assert (p[:, 1:][~mask] == 0).all()                      # padding gets nothing
+    # checkpoints written before the pointer existed hold the paper's model
+    old = {k: v for k, v in ModelConfig(output="regress").to_dict().items() if k not in ("output", "pointer_kappa")}
+    assert ModelConfig.from_dict(old).output == "regress"
+    with pytest.raises(ValueError, match="output"):
+        ModelConfig(output="select")
+
+
+def test_pointer_output_points_at_the_axis_or_an_object():
+    torch.manual_seed(0)
+    m = GA3CE(ModelConfig(pointer_kappa=20.0, **SMALL)).eval()
+    for lin in (m.pointer.q, m.pointer.k):                   # no learned preference: the bias alone weighs
+        torch.nn.init.zeros_(lin.weight), torch.nn.init.zeros_(lin.bias)
+    view, pose, head, objects, mask = _scene(B=5, S=8)
+    mask[3] = False                                          # a frame without objects
+    with torch.no_grad():
+        g0, g = m(view, pose.float(), head, objects, mask, all_passes=True)
+    # p over [null, objects] ~ exp([0, 20 (cos(g0, u_i) - 1)]), g = normalise(p_null g0 + sum p_i u_i)
+    u = np.asarray(torch.nn.functional.normalize(objects - head[:, None], dim=-1), np.float64)
+    g0n = np.asarray(g0, np.float64)
+    logits = np.where(mask.numpy(), 20.0 * (np.einsum("bsk,bk->bs", u, g0n) - 1.0), -np.inf)
+    p = np.exp(np.concatenate([np.zeros((5, 1)), logits], 1))
+    p /= p.sum(1, keepdims=True)
+    expect = p[:, :1] * g0n + np.einsum("bs,bsk->bk", p[:, 1:], u)
+    np.testing.assert_allclose(g.numpy(), expect / np.linalg.norm(expect, axis=1, keepdims=True), atol=1e-5)
+    torch.testing.assert_close(g[3], g0[3])                  # no objects: the first pass's g0
+    # the no-objects ablation of a pointer model regresses like the paper's (nothing to point at)
+    m0 = GA3CE(ModelConfig(use_objects=False, **SMALL)).eval()
+    paper = GA3CE(ModelConfig(output="regress", use_objects=False, **SMALL)).eval()
+    assert not hasattr(m0, "pointer")
+    paper.load_state_dict(m0.state_dict())
+    with torch.no_grad():
+        assert torch.equal(m0(view, pose.float(), head, objects, mask), paper(view, pose.float(), head, objects, mask))
+    with pytest.raises(ValueError, match="output"):
+        ModelConfig(output="select")
 
 
 def test_attention_hook_refuses_training_mode_and_appearance_only():

@@ -60,6 +60,27 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
     assert cfg["lr"] == 3e-4
 
 
+@pytest.mark.parametrize("w", [0.0, 1.0, 2.5])
+def test_train_step_adds_the_first_pass_loss_with_its_weight(store, w):
+    from ga3ce_prep.model import GA3CE, angular_loss
+    from ga3ce_prep.train.dataset import ContextDataset
+    from ga3ce_prep.train.trainer import train_step
+    from ga3ce_prep.store import open_store
+    b = ContextDataset(open_store(store), "train").batch(list(range(16)))
+    torch.manual_seed(0)
+    model = GA3CE(ModelConfig(dropout=0.0, **SMALL))          # the pointer: [g0, g]
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    g0, g = model(b.view, b.pose, b.head_pos, b.objects, b.mask, all_passes=True)
+    total = angular_loss(g, b.gaze) + w * angular_loss(g0, b.gaze)
+    grads = torch.autograd.grad(total, [p for p in model.parameters()], allow_unused=True)
+    sgd = torch.optim.SGD(model.parameters(), lr=1.0)           # step = -gradient, no clipping at 1e9
+    loss = train_step(model, sgd, b, b.view, lr=1.0, grad_clip=1e9, first_pass_loss=w)
+    torch.testing.assert_close(loss, angular_loss(g, b.gaze).detach())   # it reports g's loss
+    for (name, p), grad in zip(model.named_parameters(), grads):
+        expect = before[name] - (grad if grad is not None else 0)
+        torch.testing.assert_close(p.detach(), expect, atol=1e-6, rtol=1e-5, msg=name)
+
+
 def test_object_augmentation_off_is_the_recipe_without_it_and_on_changes_the_weights(store, tmp_path, monkeypatch):
     a = train(_cfg(store, tmp_path / "a"))                 # defaults: object_dropout 0, object_jitter 0
     with monkeypatch.context() as m:                       # the trainer without the object augmentation step

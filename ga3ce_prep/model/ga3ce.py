@@ -3,7 +3,11 @@
     v, P_pose, P_object, t_object --egocentric_transform--> v', P'_pose, P'_obj
     E_view = gamma(v') (106),  E_pose = D3 per joint (15 x 10),  E_subject = E_view ++ E_pose (256)
     F_object = D3(P'_obj) (256 each), after a learned null token
-    g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
+    output "regress" (the paper):
+        g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
+    output "pointer" (ours, the default; docs/training.md "What the objects add"):
+        g0' = MLP(decoder(E_subject | encoder(null token))),  g0 = normalise(R^T g0' + v)
+        p = softmax(q(E_subject) . k([null, F_object]) + kappa (cos(g0, u_i) - 1)),  g = p_null g0 + sum p_i u_i
 
 `ModelConfig` holds every architectural choice and ablation switch; it is a plain dataclass saved
 in checkpoints as a dict. Units: metres, camera frame (x right, y down, z forward).
@@ -20,7 +24,10 @@ from ..skeleton import GA3CE_JOINTS, HEAD_WIDTH_PAIR
 from .egocentric import egocentric_transform
 from .encoding import ENCODINGS, PointEncoding
 from .rotation import ROTATIONS
-from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
+from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
+
+
+OUTPUTS: tuple[str, ...] = ("pointer", "regress")
 
 
 @dataclass
@@ -33,8 +40,10 @@ class ModelConfig:
     use_pose: bool = True  # False feeds every joint's learned missing-joint embedding (ablation "appearance + objects")
     use_objects: bool = True  # False feeds the learned null object token alone (ablation "appearance + pose")
     use_context: bool = True  # False is "appearance only": g = v, no parameters are used
-    cone_bias: bool = True  # add the gaze-cone bias cos(v, object direction from the head) to cross-attention
-    cone_bias_scale: float = 1.0  # multiplies the gaze-cone bias (1 = the paper)
+    output: str = "pointer"  # pointer (ours, docs/training.md "What the objects add": a first pass without objects gives g0, then g points at g0 or at an object, transformer.ObjectPointer) or regress (the paper: g = R^T MLP(decoder over the objects) + v)
+    cone_bias: bool = True  # the gaze-cone bias: regress adds cos(v, object direction from the head) to cross-attention (the paper); pointer adds pointer_kappa (cos(g0, object direction) - 1) to its logits
+    cone_bias_scale: float = 1.0  # regress: multiplies the paper's gaze-cone bias (1 = the paper)
+    pointer_kappa: float = 300.0  # pointer: sharpness of the cone around g0 (300: an object 5 degrees off g0 loses 1.1 to the null token, 10 degrees off 4.6; chosen on val)
     d_model: int = 256  # transformer width = E_subject's width, view_width + 15 x joint_width
     n_heads: int = 2  # attention heads
     dim_feedforward: int = 512  # feed-forward width of each transformer layer
@@ -60,6 +69,8 @@ class ModelConfig:
         self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list
         if self.rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
+        if self.output not in OUTPUTS:
+            raise ValueError(f"output must be one of {OUTPUTS}, got {self.output!r}")
         if self.encoding not in ENCODINGS:
             raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
         subject = self.view_width + len(GA3CE_JOINTS) * self.joint_width
@@ -75,6 +86,7 @@ class ModelConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "ModelConfig":
         known = {f.name for f in fields(cls)}
+        d = {"output": "regress", **d}  # configurations saved before the pointer existed are the paper's model
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}")
@@ -103,6 +115,8 @@ class GA3CE(nn.Module):
         self.transformer = GazeTransformer(c.d_model, c.n_heads, c.dim_feedforward,
                                            c.num_encoder_layers, c.num_decoder_layers, c.dropout, c.norm_first)
         self.head = MLPHead(c.d_model, c.head_hidden)
+        if c.output == "pointer" and c.use_objects:  # nothing to point at without objects: no unused weights
+            self.pointer = ObjectPointer(c.d_model)
 
     def subject_embedding(self, view_ego: torch.Tensor, pose_ego: torch.Tensor,
                           joint_valid: torch.Tensor) -> torch.Tensor:
@@ -114,28 +128,61 @@ class GA3CE(nn.Module):
         return torch.cat([self.view_encoding(view_ego), e_pose.flatten(1)], dim=-1)
 
     def forward(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
-                objects: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+                objects: torch.Tensor, mask: torch.Tensor, all_passes: bool = False) -> torch.Tensor | list[torch.Tensor]:
+        """g (B, 3); with all_passes the estimates (B, 3) of every pass, g last (for the loss):
+        [g0, g] for the pointer output (g0: the first pass, the network without objects), else [g]."""
+        passes, _ = self._passes(view, pose, head_pos, objects, mask)
+        return passes if all_passes else passes[-1]
+
+    def _passes(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor, objects: torch.Tensor,
+                mask: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The passes' estimates (B, 3), g last, and the pointer's weights p (B, 1 + S) over
+        [g0, objects] (None for the regress output)."""
         c = self.config
         view = nn.functional.normalize(view, dim=-1)
         if not c.use_context:
-            return view
+            return [view], None
         if not c.use_objects:
             objects, mask = objects[:, :0], mask[:, :0]
         ctx = egocentric_transform(view, pose, objects, head_pos, c.rotation, c.head_width_pair)
         subject = self.subject_embedding(ctx.view, ctx.pose, ctx.joint_valid)
         tokens = self.object_encoding(ctx.objects)
-        bias = (gaze_cone_bias(ctx.view, ctx.objects, mask, c.n_heads, c.cone_bias_scale)
-                if c.cone_bias else None)
-        g_prime = self.head(self.transformer(subject, tokens, mask, bias))
-        return nn.functional.normalize(torch.einsum("bji,bj->bi", ctx.R, g_prime) + view, dim=-1, eps=1e-9)
+        if c.output == "regress" or not c.use_objects:   # the paper's model; the no-objects ablation of either
+            bias = gaze_cone_bias(ctx.view, ctx.objects, mask, c.n_heads, c.cone_bias_scale) if c.cone_bias else None
+            return [self._to_camera(ctx.R, self.head(self.transformer(subject, tokens, mask, bias)), view)], None
+        # pointer: the first pass sees the null token alone; g points at g0 or at the objects around it
+        g0_prime = self.head(self.transformer(subject, tokens[:, :0], mask[:, :0], None))
+        axis = nn.functional.normalize(g0_prime + ctx.view, dim=-1, eps=1e-9)            # g0, egocentric
+        bias = (gaze_cone_bias(axis.detach(), ctx.objects, mask, 1, c.pointer_kappa, relative=True)[:, 0]
+                if c.cone_bias else torch.cat([mask.new_ones(len(mask), 1), mask], 1).float().log())  # -inf = padding
+        keys = torch.cat([self.transformer.null_token.expand(len(tokens), 1, -1), tokens], 1)   # [null, F_object]
+        g_ego, p = self.pointer(subject, keys, axis, ctx.objects, bias)
+        g = nn.functional.normalize(torch.einsum("bji,bj->bi", ctx.R, g_ego), dim=-1, eps=1e-9)
+        return [self._to_camera(ctx.R, g0_prime, view), g], p
+
+    def object_weights(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
+                       objects: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """g (B, 3) and the weight the model gives [null token (g0 for the pointer), objects]
+        (B, 1 + S): the pointer's p, or the regress model's last decoder layer's cross-attention
+        (mean over heads). Eval mode."""
+        if self.config.output == "pointer" and self.config.use_objects and self.config.use_context:
+            (*_, g), p = self._passes(view, pose, head_pos, objects, mask)
+            return g, p
+        g, w = self.cross_attention(view, pose, head_pos, objects, mask)
+        return g, w[:, -1].mean(1)
+
+    @staticmethod
+    def _to_camera(R: torch.Tensor, g_prime: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """g' (B, 3) egocentric, v (B, 3) camera frame -> g = normalise(R^T g' + v) (B, 3)."""
+        return nn.functional.normalize(torch.einsum("bji,bj->bi", R, g_prime) + view, dim=-1, eps=1e-9)
 
     def cross_attention(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
                         objects: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward's g (B, 3), unchanged, and the decoder's cross-attention weights (B, layers,
-        heads, 1 + S) over [null token, objects] (GazeTransformer.record_cross_attention; S = 0
-        when use_objects is off). Eval mode; the appearance-only model (use_context off) has none."""
+        heads, 1 + S) over [null token, objects] of its last pass (GazeTransformer.record_cross_attention;
+        S = 0 when use_objects is off). Eval mode; the appearance-only model (use_context off) has none."""
         if not self.config.use_context:
             raise ValueError("this model has no attention: use_context is off (the appearance-only row, g = v)")
         with self.transformer.record_cross_attention() as record:
             g = self(view, pose, head_pos, objects, mask)
-        return g, torch.stack(record, dim=1)
+        return g, torch.stack(record[-self.config.num_decoder_layers:], dim=1)

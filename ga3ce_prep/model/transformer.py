@@ -22,17 +22,19 @@ from torch import nn
 
 
 def gaze_cone_bias(view: torch.Tensor, objects_rel: torch.Tensor, mask: torch.Tensor,
-                   n_heads: int, scale: float = 1.0) -> torch.Tensor:
+                   n_heads: int, scale: float = 1.0, relative: bool = False) -> torch.Tensor:
     """The cross-attention bias of the decoder's single query over [null token, objects].
 
-    view: (B, 3) unit view prior. objects_rel: (B, S, 3) objects minus the head position (any frame
-    in which `view` is expressed). mask: (B, S) bool, True = real object. Returns a float
-    memory_mask (B * n_heads, 1, 1 + S): `scale` * cos(v, object direction) for real objects, 0 for
+    view: (B, 3) unit axis of the cone (the view prior v in the paper). objects_rel: (B, S, 3)
+    objects minus the head position (any frame in which `view` is expressed). mask: (B, S) bool,
+    True = real object. Returns a float memory_mask (B * n_heads, 1, 1 + S): `scale` * cos(axis,
+    object direction) for real objects (the paper), or with `relative` `scale` * (cos - 1), 0 on
+    the axis (a von Mises kernel whose sharpness `scale` does not push the null token out); 0 for
     the null token, -inf for padding.
     """
     B, S, _ = objects_rel.shape
     cos = torch.einsum("bsk,bk->bs", nn.functional.normalize(objects_rel, dim=-1, eps=1e-9), view)
-    bias = torch.where(mask, scale * cos, torch.full_like(cos, float("-inf")))
+    bias = torch.where(mask, scale * (cos - 1.0 if relative else cos), torch.full_like(cos, float("-inf")))
     bias = torch.cat([bias.new_zeros(B, 1), bias], dim=1)             # null token: 0
     return bias.repeat_interleave(n_heads, dim=0)[:, None, :]
 
@@ -100,12 +102,43 @@ class GazeTransformer(nn.Module):
                 h.remove()
 
     def forward(self, subject: torch.Tensor, objects: torch.Tensor, mask: torch.Tensor,
-                bias: torch.Tensor | None) -> torch.Tensor:
+                bias: torch.Tensor | None, memory: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         B = subject.shape[0]
         src = torch.cat([self.null_token.expand(B, 1, -1), objects], dim=1)
         pad = torch.cat([mask.new_zeros(B, 1), ~mask], dim=1)           # True = ignore
         if bias is None:  # padding still has to be masked in cross-attention
             bias = torch.zeros(pad.shape, dtype=src.dtype, device=src.device).masked_fill(pad, float("-inf"))
             bias = bias.repeat_interleave(self.n_heads, dim=0)[:, None, :]
-        out = self.transformer(src, subject[:, None, :], src_key_padding_mask=pad, memory_mask=bias)
-        return out[:, 0]
+        # nn.Transformer.forward's two calls, written out so that the encoder's output can be returned
+        enc = self.transformer.encoder(src, src_key_padding_mask=pad)
+        out = self.transformer.decoder(subject[:, None, :], enc, memory_mask=bias)[:, 0]
+        return (out, enc) if memory else out
+
+
+class ObjectPointer(nn.Module):
+    """The pointer output (ours; ModelConfig.output "pointer", docs/training.md "What the objects
+    add"): g is a convex combination of the first pass's estimate g0 and the unit directions u_i of
+    the objects from the head,
+
+        p = softmax(q(E_subject) . k([null token, F_object]) / sqrt(d) + kappa (cos(g0, u_i) - 1)),
+        g = normalise(p_null g0 + sum_i p_i u_i).
+
+    Each object's score sees the subject and that object alone (no encoder mixing the room's
+    layout into it), so the model can say "g0" or "that object near g0", but cannot learn a room's
+    gaze targets by heart from its object layout (which is what the paper's regressing decoder
+    did on our worlds).
+    """
+
+    def __init__(self, d_model: int = 256):
+        super().__init__()
+        self.q, self.k = nn.Linear(d_model, d_model), nn.Linear(d_model, d_model)
+
+    def forward(self, query: torch.Tensor, keys: torch.Tensor, axis: torch.Tensor, objects_rel: torch.Tensor,
+                bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """query (B, d) E_subject, keys (B, 1+S, d) [null token, F_object], axis (B, 3) unit g0,
+        objects_rel (B, S, 3) objects minus the head (the frame of `axis`), bias (B, 1+S): the
+        gaze-cone bias (-inf = padding). Returns g (B, 3) unit in the frame of `axis`, and p (B, 1+S)."""
+        logits = torch.einsum("bd,bsd->bs", self.q(query), self.k(keys)) / keys.shape[-1] ** 0.5 + bias
+        p = torch.softmax(logits, dim=-1)
+        dirs = torch.cat([axis[:, None], nn.functional.normalize(objects_rel, dim=-1, eps=1e-9)], dim=1)
+        return nn.functional.normalize(torch.einsum("bs,bsk->bk", p, dirs), dim=-1, eps=1e-9), p

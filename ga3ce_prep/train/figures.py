@@ -3,8 +3,8 @@
 - qualitative grid: frames from the best to the worst error, each drawn by `viz.draw_png` (the
   frame's 3D context on its image) with the ground-truth gaze (red), ours g (orange) and the view
   prior v (blue) as arrows projected from the head into the image;
-- attention: the decoder's cross-attention over the objects (last layer, mean over heads;
-  `GA3CE.cross_attention`), projected into the image, the objects above the frame's 95th
+- attention: the weight the model gives each object (`GA3CE.object_weights`: the pointer's p, or
+  the paper's decoder's last-layer cross-attention, mean over heads), projected into the image, the objects above the frame's 95th
   percentile ringed in red, the gaze target (star) and the true gaze (red arrow) marked;
 - egocentric space: the 3D context after `egocentric_transform` (v' = z): the objects P'_obj in
   metres (coloured by attention) and the pose P'_pose in head widths, with v', R g_gt and R g.
@@ -38,8 +38,8 @@ class FigureFrames:
     """The frames the figures show (n of them, best to worst error) with the model's inputs and
     outputs. rows: (n,) store rows; pos: (n,) dataset positions; pred: (n, 3) g; error, prior_error:
     (n,) degrees of g and of v; objects: (n, S, 3) metres; mask: (n, S) True = real object;
-    attention: (n, S) weight of each object (last decoder layer, mean over heads), None for a
-    model without attention; null: (n,) the null token's weight (None likewise)."""
+    attention: (n, S) weight of each object (GA3CE.object_weights), None for a model without
+    attention; null: (n,) the null token's weight (g0's, for the pointer; None likewise)."""
 
     rows: np.ndarray
     pos: np.ndarray
@@ -50,6 +50,7 @@ class FigureFrames:
     mask: np.ndarray
     attention: np.ndarray | None
     null: np.ndarray | None
+    pointer: bool = False  # the weights are the pointer output's p (else the decoder's attention)
 
 
 def choose_frames(errors: np.ndarray, n: int) -> np.ndarray:
@@ -62,7 +63,7 @@ def choose_frames(errors: np.ndarray, n: int) -> np.ndarray:
 @torch.no_grad()
 def figure_frames(model: GA3CE, ds: ContextDataset, n: int = 8, n_max: int | None = None,
                   device: str | torch.device = "cpu") -> FigureFrames:
-    """Predict every frame of ds, choose n (choose_frames) and record the decoder's attention."""
+    """Predict every frame of ds, choose n (choose_frames) and record the weight of each object."""
     g = predict(model, ds, device=device, n_max=n_max)
     err = angular_error_deg(g, ds.gaze)
     pos = choose_frames(err, n)
@@ -70,14 +71,15 @@ def figure_frames(model: GA3CE, ds: ContextDataset, n: int = 8, n_max: int | Non
     attention = null = None
     if model.config.use_context:
         model.eval()
-        _, w = model.cross_attention(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
-        w = w[:, -1].mean(1).cpu().numpy()                                   # (n, 1 + S'), S' = 0 without objects
+        _, w = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
+        w = w.cpu().numpy()                                                  # (n, 1 + S'), S' = 0 without objects
         null = w[:, 0]
         attention = np.zeros(b.mask.shape, np.float32)
         attention[:, : w.shape[1] - 1] = w[:, 1:]
     return FigureFrames(rows=ds.rows[pos], pos=pos, pred=g[pos], error=err[pos],
                         prior_error=angular_error_deg(ds.view[pos], ds.gaze[pos]),
-                        objects=b.objects.numpy(), mask=b.mask.numpy(), attention=attention, null=null)
+                        objects=b.objects.numpy(), mask=b.mask.numpy(), attention=attention, null=null,
+                        pointer=model.config.output == "pointer" and model.config.use_objects)
 
 
 def _panels(n: int, cols: int, size: tuple[float, float], projection: str | None = None):
@@ -112,7 +114,7 @@ def plot_qualitative_grid(store: ContextStore, fr: FigureFrames, path: str | Pat
 
 def plot_attention(store: ContextStore, fr: FigureFrames, path: str | Path, refs: dict | None = None,
                    cols: int = 4) -> Path:
-    """The decoder's attention over the objects in the image (module docstring)."""
+    """The model's weight of each object in the image (module docstring)."""
     if fr.attention is None:
         raise ValueError("these frames have no attention (a model without context, the appearance-only row)")
     refs = refs or {}
@@ -142,12 +144,13 @@ def plot_attention(store: ContextStore, fr: FigureFrames, path: str | Path, refs
         if np.isfinite(t).all():
             ax.plot(*t, "*", color="red", ms=16, mec="white", label="gaze target")
         fig.colorbar(sc, ax=ax, fraction=0.04, pad=0.01)
-        ax.set_title(f"{ids[i]}\n{int(real.sum())} objects, null token {fr.null[k]:.2f}", fontsize=8)
+        ax.set_title(f"{ids[i]}\n{int(real.sum())} objects, {'g0' if fr.pointer else 'null token'} {fr.null[k]:.2f}", fontsize=8)
         ax.set_xlim(0, img.shape[1])
         ax.set_ylim(img.shape[0], 0)
         ax.axis("off")
     fig.legend(*axes[0].get_legend_handles_labels(), loc="upper right", ncol=2, fontsize=8)
-    fig.suptitle("decoder cross-attention over the objects (last layer, mean over heads)", fontsize=10)
+    fig.suptitle("the model's weight of each object (" + ("pointer p" if fr.pointer else
+                 "decoder cross-attention, last layer, mean over heads") + ")", fontsize=10)
     return _save(plt, fig, path)
 
 

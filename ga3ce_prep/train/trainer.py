@@ -57,6 +57,7 @@ class TrainConfig:
     view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
     object_dropout: float = 0.0  # probability of dropping each object token of a training frame (ours, 0 = the paper's recipe): docs/training.md "What the objects add"
     object_frame_dropout: float = 0.0  # probability of hiding all objects of a training frame (ours, 0 = the paper's recipe): the model also learns to do without them
+    first_pass_loss: float = 1.0  # weight of the arccos loss of the pointer model's first pass g0 (ours; g has weight 1): g0 is trained as the no-objects model it is
     object_jitter: float = 0.0  # std of Gaussian noise added to each object position in training, metres (ours, 0 = the paper's recipe)
     seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
     device: Literal["cpu", "cuda"] = "cpu"  # where to train
@@ -170,15 +171,20 @@ def augment_objects(b: Batch, generator: torch.Generator, dropout: float, frame_
 
 
 def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
-               grad_clip: float, weight: float = 1.0) -> torch.Tensor:
+               grad_clip: float, weight: float = 1.0, first_pass_loss: float = 1.0) -> torch.Tensor:
     """One optimiser step on batch b with view prior `view` (B, 3) (augmented or not): forward,
     arccos loss, backward, gradient clipping at L2 norm grad_clip, AdamW at learning rate lr.
     weight scales the loss for the backward pass (data-parallel: this rank's share of the global
-    batch times the world size). Returns the batch's mean loss (radians, detached, unscaled)."""
-    g = model(view, b.pose, b.head_pos, b.objects, b.mask)
+    batch times the world size); the pointer model's first pass g0 adds its arccos loss times
+    first_pass_loss. Returns the batch's mean loss of g (radians,
+    detached, unscaled)."""
+    *firsts, g = model(view, b.pose, b.head_pos, b.objects, b.mask, all_passes=True)
     loss = angular_loss(g, b.gaze)
+    total = loss
+    for g0 in firsts:
+        total = total + first_pass_loss * angular_loss(g0, b.gaze)
     optimizer.zero_grad(set_to_none=True)
-    (loss * weight).backward()
+    (total * weight).backward()
     torch.nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], grad_clip)
     for group in optimizer.param_groups:
         group["lr"] = lr
@@ -287,7 +293,7 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
             take = rows if n_rows else slice(0, 1)  # no rows: one at weight 0 keeps the ranks in step
             lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
             loss = train_step(net, optimizer, b.rows(take), view[take], lr, config.grad_clip,
-                              weight=n_rows * ranks.world / len(idx))
+                              weight=n_rows * ranks.world / len(idx), first_pass_loss=config.first_pass_loss)
             step += 1
             sum_loss += loss.item() * n_rows
             n_seen += len(idx)
