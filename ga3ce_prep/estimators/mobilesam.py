@@ -197,7 +197,7 @@ class OfficialDecoder:
         parts = [self.session.run(fetch, {**base, n["point_coords"]: coords[i:i + step],
                                           n["point_labels"]: labels[i:i + step]})
                  for i in range(0, len(coords), step)]
-        return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
+        return parts[0] if len(parts) == 1 else [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
 
     # MaskDecoder ------------------------------------------------------------------------------
     def set_image(self, image_embeddings: np.ndarray) -> None:
