@@ -140,3 +140,38 @@ def test_fast_decoder_batch_size_follows_the_provider():
 def test_both_decoders_are_mask_decoders():
     assert isinstance(FastDecoder(DEC, CPU, 1), MaskDecoder)
     assert isinstance(OfficialDecoder(DEC, CPU, 1, batch_size=64), MaskDecoder)
+
+
+def test_io_binding_is_chosen_by_the_provider():
+    from ga3ce_prep.estimators.fast_decoder import use_io_binding
+
+    assert use_io_binding("auto", ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    assert not use_io_binding("auto", CPU)
+    assert use_io_binding("on", CPU) and not use_io_binding("off", ["CUDAExecutionProvider"])
+    dec = FastDecoder(DEC, CPU, 1, io_binding=True)
+    assert dec.batch_size is None and dec.device == "cpu"
+
+
+def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
+    """The I/O binding path (all prompts of the crop in one token-graph call, the state bound as
+    OrtValues into the mask graph, here in chunks of 7 prompts) on CPU keeps the plain path's
+    candidates, scores, stability scores, boxes and masks exactly: same graphs, same arithmetic."""
+    rgb = drawn_frame()
+    opt = SegmenterOptions(points_per_side=5, pred_iou_thresh=0.0, stability_score_thresh=0.3,
+                           stability_score_offset=0.05, box_nms_thresh=1.0, io_binding="off")
+    plain = MobileSamSegmenter(ENC, DEC, opt, verify=False)
+    bound = MobileSamSegmenter(ENC, DEC, SegmenterOptions(**{**opt.to_dict(), "io_binding": "on"}), verify=False)
+    assert plain.decoder.batch_size == 4 and bound.decoder.batch_size is None and bound._pool is None
+    calls = []
+    monkeypatch.setattr(bound.decoder, "MASK_CHUNK", 7)
+    predict = bound.decoder.predict_iou
+    monkeypatch.setattr(bound.decoder, "predict_iou", lambda c, lab: calls.append(len(c)) or predict(c, lab))
+    a, b = plain.segment(rgb), bound.segment(rgb)
+    assert calls == [25]                                        # one batch: the whole grid
+    assert a.n_candidates == b.n_candidates == 75 and 5 < len(a.masks) < 75
+    np.testing.assert_array_equal(b.points, a.points)
+    np.testing.assert_allclose(b.scores, a.scores, atol=1e-6)
+    np.testing.assert_allclose(b.stability, a.stability, atol=1e-6)
+    np.testing.assert_array_equal(b.boxes, a.boxes)
+    diff = (a.masks != b.masks).reshape(len(a.masks), -1).sum(axis=1)
+    assert diff.max() <= 20                                      # logits within float noise of 0 at most

@@ -21,11 +21,23 @@ docs/models.md, "How the fast decoder is fast", writes the derivation out under 
 Tokens are numbered as in the official decoder: 0 = IoU token, 1..4 = mask tokens (1..3 are the
 "multimask" outputs), then the prompt points. Mask inputs (`has_mask_input` = 1) are not supported:
 segment-everything never uses them.
+
+Two ways to run the graphs (the same arithmetic, the same outputs):
+- **plain** (CPU default): `run_with_ort_values`, prompts in small batches (`CPU_BATCH_SIZE`), which
+  the segmenter decodes two at a time on 1-thread sessions. ONNX Runtime returns every output in
+  host memory, so on a GPU the image tensors and the per-prompt state would cross the bus twice.
+- **I/O binding** (`io_binding=True`, the default with the CUDA provider, `use_io_binding`): all
+  prompts of a crop in one token-graph call (`batch_size` None); the image graph's outputs and the
+  token graph's state (`STATE`: `A0c`, `A1c` (B, 4096, HT), ...) are bound as OrtValues on the
+  provider's device and fed as they are to the next graph; only the IoU predictions (B, 4) and the
+  wanted prompts' low-res logits come back to the host. The mask graph runs `MASK_CHUNK` prompts
+  per call (bounded device memory: about 30 MB of activations per prompt). On CPU it runs the same
+  code with device "cpu" (the tests compare it with the plain path there).
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 import onnxruntime as ort
@@ -40,6 +52,16 @@ from .onnx_runtime import create_session
 # ORT would fuse the mask graph's second bias + GELU into BiasGelu, whose CPU kernel is about 4x
 # slower per element than Gelu's (onnxruntime 1.32, same outputs; docs/models.md "Speed")
 MASK_GRAPH_DISABLED_OPTIMIZERS = ("BiasGeluFusion",)
+# ONNX Runtime device of each provider the I/O binding path keeps tensors on (others: the host)
+PROVIDER_DEVICE = {"CUDAExecutionProvider": "cuda", "TensorrtExecutionProvider": "cuda"}
+
+
+def use_io_binding(setting: Literal["auto", "on", "off"], providers: Sequence[str]) -> bool:
+    """Whether the fast decoder runs through I/O binding: "auto" = with the CUDA provider first in
+    `providers` (resolved provider names); "on" = always (on CPU: for testing); "off" = never."""
+    if setting not in ("auto", "on", "off"):
+        raise ValueError(f"io_binding must be auto, on or off, got {setting!r}")
+    return setting == "on" or (setting == "auto" and providers[0] == "CUDAExecutionProvider")
 
 
 class FastDecoder:
@@ -49,35 +71,63 @@ class FastDecoder:
 
     decoder_path: the official decoder ONNX (its weights are read from it).
     providers: resolved execution providers in preference order (onnx_runtime.resolve_providers).
-    threads: intra-op threads of each of the three sessions."""
+    threads: intra-op threads of each of the three sessions.
+    io_binding: run through I/O binding on the first provider's device, all prompts of a crop in one
+      batch (module docstring); `use_io_binding` decides it from the segmenter's options."""
 
     # Prompts per token-graph call: 4 on CPU (measured per batch size in docs/models.md, "Speed"),
-    # GPU_BATCH_SIZE on other providers.
+    # GPU_BATCH_SIZE on other providers, None (all prompts of a crop) with I/O binding.
     CPU_BATCH_SIZE = 4
     GPU_BATCH_SIZE = 64
+    # Prompts per mask-graph call with I/O binding
+    MASK_CHUNK = 64
     # Every token is decoded from the file's weights, a single-mask export's too: the generator's
     # candidates are the multimask outputs
     candidate_tokens = MULTIMASK_TOKENS
 
-    def __init__(self, decoder_path: str | Path, providers: Sequence[str], threads: int):
+    def __init__(self, decoder_path: str | Path, providers: Sequence[str], threads: int, io_binding: bool = False):
         w = decoder_weights(decoder_path)
         d = Derived.from_weights(w)
         self.path = Path(decoder_path)
-        self.batch_size = self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
+        self.io_binding = io_binding
+        self.device = PROVIDER_DEVICE.get(providers[0], "cpu")   # where bound tensors live (device id 0)
+        self.batch_size: int | None = None if io_binding else \
+            self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w, d).SerializeToString(), providers, threads,
                                      "fast decoder (image)")
         self._tokens = create_session(build_token_graph(w, d).SerializeToString(), providers, threads,
                                       "fast decoder (tokens)")
         self._masks = create_session(build_mask_graph(w, d).SerializeToString(), providers, threads,
                                      "fast decoder (masks)", disabled_optimizers=MASK_GRAPH_DISABLED_OPTIMIZERS)
-        self._token_outputs = [o.name for o in self._tokens.get_outputs()]
         self._img: dict[str, ort.OrtValue] | None = None
+
+    def _value(self, array: np.ndarray, dtype: type = np.float32) -> ort.OrtValue:
+        """A host array as an OrtValue where the graphs read it (the device with I/O binding)."""
+        a = np.ascontiguousarray(array, dtype)
+        return ort.OrtValue.ortvalue_from_numpy(a, self.device, 0) if self.io_binding else \
+            ort.OrtValue.ortvalue_from_numpy(a)
+
+    def _run(self, session: ort.InferenceSession, feeds: dict[str, ort.OrtValue], on_device: Sequence[str],
+             on_host: Sequence[str] = ()) -> dict[str, ort.OrtValue]:
+        """One graph call. Plain: every output on the host. I/O binding: the feeds bound where they
+        are, the outputs `on_device` left on the device for the next graph, those `on_host` copied
+        to the host."""
+        if not self.io_binding:
+            names = [*on_device, *on_host]
+            return dict(zip(names, session.run_with_ort_values(names, feeds)))
+        binding = session.io_binding()
+        for name, value in feeds.items():
+            binding.bind_ortvalue_input(name, value)
+        for name in on_device:
+            binding.bind_output(name, self.device, 0)
+        for name in on_host:
+            binding.bind_output(name, "cpu")
+        session.run_with_iobinding(binding)
+        return dict(zip([*on_device, *on_host], binding.get_outputs()))
 
     def set_image(self, image_embeddings: np.ndarray) -> None:
         """image_embeddings (1, 256, 64, 64) float32 from the encoder."""
-        emb = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(image_embeddings, np.float32))
-        vals = self._image.run_with_ort_values(list(IMAGE_TENSORS), {"image_embeddings": emb})
-        self._img = dict(zip(IMAGE_TENSORS, vals))
+        self._img = self._run(self._image, {"image_embeddings": self._value(image_embeddings)}, list(IMAGE_TENSORS))
 
     def predict_iou(self, point_coords: np.ndarray,
                     point_labels: np.ndarray) -> tuple[np.ndarray, dict[str, ort.OrtValue]]:
@@ -86,18 +136,21 @@ class FastDecoder:
         if self._img is None:
             raise RuntimeError("call set_image() before predict_iou()")
         feeds = {k: self._img[k] for k in TOKEN_IMAGE_INPUTS}
-        feeds["point_coords"] = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(point_coords, np.float32))
-        feeds["point_labels"] = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(point_labels, np.float32))
-        vals = dict(zip(self._token_outputs, self._tokens.run_with_ort_values(self._token_outputs, feeds)))
+        feeds["point_coords"] = self._value(point_coords)
+        feeds["point_labels"] = self._value(point_labels)
+        vals = self._run(self._tokens, feeds, list(STATE), ["iou_predictions"])
         return vals["iou_predictions"].numpy(), {k: vals[k] for k in STATE}
 
     def low_res_raw(self, state: dict, index: np.ndarray) -> np.ndarray:
         """(K, 4096*16, 4) float32 mask logits of the prompts `index` of a predict_iou batch, in the
-        mask graph's pixel order (see raw_to_image)."""
-        feeds = dict(state)
-        feeds["SC"] = self._img["SC"]
-        feeds["index"] = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(index, np.int64))
-        return self._masks.run_with_ort_values(["low_res_raw"], feeds)[0].numpy()
+        mask graph's pixel order (see raw_to_image); with I/O binding `MASK_CHUNK` prompts per call."""
+        index = np.asarray(index, np.int64)
+        step = self.MASK_CHUNK if self.io_binding else max(1, len(index))
+        parts = []
+        for c0 in range(0, max(1, len(index)), step):   # one call for an empty index too
+            feeds = {**state, "SC": self._img["SC"], "index": self._value(index[c0:c0 + step], np.int64)}
+            parts.append(self._run(self._masks, feeds, [], ["low_res_raw"])["low_res_raw"].numpy())
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def low_res_masks(self, state: dict, index: np.ndarray) -> np.ndarray:
         """(K, 4, 256, 256) float32 mask logits of the prompts `index` of a predict_iou batch."""

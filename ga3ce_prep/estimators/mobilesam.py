@@ -197,7 +197,7 @@ class OfficialDecoder:
         parts = [self.session.run(fetch, {**base, n["point_coords"]: coords[i:i + step],
                                           n["point_labels"]: labels[i:i + step]})
                  for i in range(0, len(coords), step)]
-        return [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
+        return parts[0] if len(parts) == 1 else [np.concatenate([p[k] for p in parts]) for k in range(len(outputs))]
 
     # MaskDecoder ------------------------------------------------------------------------------
     def set_image(self, image_embeddings: np.ndarray) -> None:
@@ -221,7 +221,7 @@ class MaskDecoder(Protocol):
     """What the generator needs of a decoder (`FastDecoder`, `OfficialDecoder`): IoU predictions for a
     batch of prompts first, then the low-res masks of the candidates that pass the IoU filter."""
 
-    batch_size: int  # prompts per predict_iou call
+    batch_size: int | None  # prompts per predict_iou call (None: all prompts of a crop); results do not depend on it
     candidate_tokens: tuple[int, ...]  # columns of predict_iou's IoUs that are one prompt's candidates
 
     def set_image(self, image_embeddings: np.ndarray) -> None:
@@ -367,6 +367,7 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
     options (AmgOptions), the ONNX Runtime settings (RuntimeParams) and the decoder mode."""
 
     decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster), multimask even from a single-mask export (its weights hold all 4 mask tokens); official: the exported decoder graph, one call per prompt (a single-mask export gives one mask per point)
+    io_binding: Literal["auto", "on", "off"] = "auto"  # fast decoder: all prompts of a crop in one batch through ONNX Runtime I/O binding, its state kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU (for testing; same masks); off: batches of 4 (CPU) or 64 prompts, outputs through host memory
 
 
 class MobileSamSegmenter:
@@ -383,6 +384,8 @@ class MobileSamSegmenter:
         decoder_mode, threads = options.decoder_mode, options.threads
         if decoder_mode not in ("fast", "official"):
             raise ModelFileError(f"decoder_mode must be 'fast' or 'official', got {decoder_mode!r}")
+        if options.io_binding == "on" and decoder_mode != "fast":
+            raise ConfigError("io_binding 'on' runs the fast decoder's graphs: set decoder_mode 'fast' or io_binding 'auto'")
         self.options = options
         self.providers = resolve_providers(options.providers)
         self.encoder_path, self.decoder_path = Path(encoder), Path(decoder)
@@ -394,15 +397,16 @@ class MobileSamSegmenter:
         self.decoder: MaskDecoder = self.official
         if decoder_mode == "fast":
             try:
-                from .fast_decoder import FastDecoder
+                from .fast_decoder import FastDecoder, use_io_binding
             except ImportError as e:   # the fast decoder reads and writes ONNX graphs with the onnx package
                 raise ConfigError(f"decoder_mode 'fast' needs the onnx package ({e}): pip install onnx, "
                                   "or use decoder_mode 'official'") from e
 
             # CPU: `threads` batches at once on 1-thread sessions (less synchronisation than one
-            # batch on `threads` threads); other providers: one batch at a time
-            parallel = threads > 1 and self.providers[0] == "CPUExecutionProvider"
-            self.decoder = FastDecoder(decoder, self.providers, 1 if parallel else threads)
+            # batch on `threads` threads); other providers, and I/O binding: one batch at a time
+            io_binding = use_io_binding(options.io_binding, self.providers)
+            parallel = threads > 1 and self.providers[0] == "CPUExecutionProvider" and not io_binding
+            self.decoder = FastDecoder(decoder, self.providers, 1 if parallel else threads, io_binding=io_binding)
             if parallel:
                 self._pool = ThreadPoolExecutor(threads, thread_name_prefix="mobilesam")
             if verify:
@@ -511,7 +515,7 @@ class MobileSamSegmenter:
             with timer("reuse"):
                 plan = reuse.plan(emb, coords)
         prompts = np.arange(len(points)) if plan is None else np.flatnonzero(plan)
-        step = self.decoder.batch_size                                             # results do not depend on it
+        step = self.decoder.batch_size or max(1, len(prompts))                     # None: all at once; results do not depend on it
         batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
 
         def decode(b: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
