@@ -3,6 +3,7 @@ to float tolerance, as one process with the same global batch (dropout 0: each r
 dropout masks)."""
 import csv
 import os
+import re
 import subprocess
 import sys
 
@@ -52,5 +53,12 @@ def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path):
         np.testing.assert_allclose([float(r[key]) for r in b], [float(r[key]) for r in a], rtol=1e-5, err_msg=key)
     wa, wb = load_checkpoint(one / "last.pt")["model"], load_checkpoint(two / "last.pt")["model"]
     assert wa.keys() == wb.keys()
+    d = SMALL.get("d_model", 256)
     for k in wa:
-        torch.testing.assert_close(wb[k], wa[k], rtol=1e-4, atol=1e-6, msg=k)
+        a_, b_ = wa[k], wb[k]
+        if re.fullmatch(r".*decoder\.layers\.\d+\.multihead_attn\.in_proj_(weight|bias)", k):
+            # the pointer's first pass cross-attends to the null token alone: a softmax over one key
+            # is 1, so the query and key rows get float-noise gradients only, which AdamW turns into
+            # arbitrary steps; they do not change any output (the histories above agree). Values only.
+            a_, b_ = a_[2 * d:], b_[2 * d:]
+        torch.testing.assert_close(b_, a_, rtol=1e-4, atol=1e-6, msg=k)
