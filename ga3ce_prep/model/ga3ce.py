@@ -179,10 +179,10 @@ class GA3CE(nn.Module):
     def cross_attention(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
                         objects: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward's g (B, 3), unchanged, and the decoder's cross-attention weights (B, layers,
-        heads, 1 + S) over [null token, objects] of its last pass (GazeTransformer.record_cross_attention;
-        S = 0 when use_objects is off). Eval mode; the appearance-only model (use_context off) has none."""
+        heads, 1 + S) over [null token, objects] (GazeTransformer.record_cross_attention; S = 0
+        when use_objects is off or the output is the pointer, whose decoder sees the null token alone). Eval mode; the appearance-only model (use_context off) has none."""
         if not self.config.use_context:
             raise ValueError("this model has no attention: use_context is off (the appearance-only row, g = v)")
         with self.transformer.record_cross_attention() as record:
             g = self(view, pose, head_pos, objects, mask)
-        return g, torch.stack(record[-self.config.num_decoder_layers:], dim=1)
+        return g, torch.stack(record, dim=1)

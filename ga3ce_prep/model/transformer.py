@@ -102,17 +102,15 @@ class GazeTransformer(nn.Module):
                 h.remove()
 
     def forward(self, subject: torch.Tensor, objects: torch.Tensor, mask: torch.Tensor,
-                bias: torch.Tensor | None, memory: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+                bias: torch.Tensor | None) -> torch.Tensor:
         B = subject.shape[0]
         src = torch.cat([self.null_token.expand(B, 1, -1), objects], dim=1)
         pad = torch.cat([mask.new_zeros(B, 1), ~mask], dim=1)           # True = ignore
         if bias is None:  # padding still has to be masked in cross-attention
             bias = torch.zeros(pad.shape, dtype=src.dtype, device=src.device).masked_fill(pad, float("-inf"))
             bias = bias.repeat_interleave(self.n_heads, dim=0)[:, None, :]
-        # nn.Transformer.forward's two calls, written out so that the encoder's output can be returned
-        enc = self.transformer.encoder(src, src_key_padding_mask=pad)
-        out = self.transformer.decoder(subject[:, None, :], enc, memory_mask=bias)[:, 0]
-        return (out, enc) if memory else out
+        out = self.transformer(src, subject[:, None, :], src_key_padding_mask=pad, memory_mask=bias)
+        return out[:, 0]
 
 
 class ObjectPointer(nn.Module):
