@@ -22,7 +22,11 @@ new mask still comes first in NMS (same score, earlier prompt). A key-frame cand
 decoded again but whose own mask reaches into a changed cell is dropped rather than reused: it is
 stale (the duplicate of a winner that was decoded again and may have changed, so nothing would
 suppress it). The merged candidates, in prompt order as the exact generator lists them, then go
-through NMS as usual. A frame is a key frame (all prompts
+through NMS as usual. A candidate whose predicted IoU or stability score lies within `reuse_score_margin` of its filter's
+threshold on the key frame may pass on one frame and fail on the next from sensor noise alone; the
+key frame therefore also decodes the candidates within the margin below the thresholds, and a
+prompt is decoded on every frame when such a candidate of it won the key frame's NMS or, below the
+threshold, would have won it (no winner with a higher score suppresses it). A frame is a key frame (all prompts
 decoded, the state renewed) when it is the sequence's first, follows a gap in raw frame numbers,
 comes `reuse_max_age` frames after the key frame, or would decode more than `reuse_max_changed` of
 the prompts. The full-image crop only (crop_n_layers 0).
@@ -52,6 +56,7 @@ class ReuseParams:
     reuse_depth_change: float = param(0.05, exclusiveMinimum=0)  # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a cell 1 m before the wall moves it by 0.1 m)
     reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
     reuse_neighbourhood: int = param(1, minimum=0)  # cells: a prompt is decoded again when a changed cell lies within this many cells of it
+    reuse_score_margin: float = param(0.02, minimum=0)  # a candidate whose predicted IoU or stability score lies this close to its filter's threshold on the key frame (either side) may pass on one frame and fail on the next from sensor noise alone: its prompt is decoded on every frame if the candidate won, or would win, the key frame's NMS
     reuse_max_changed: float = param(0.5, minimum=0, maximum=1)  # a new key frame when more than this share of the prompts would be decoded again (then decoding all costs little more)
     reuse_max_age: int = param(60, minimum=1)  # frames: a new key frame this many frames after the last (bounds slow drift, e.g. daylight)
 
@@ -99,6 +104,10 @@ class _Key:
     cells: np.ndarray          # (n, 64, 64) bool cells each of `records`' masks covers
     won: np.ndarray            # (w,) int64 prompts of the candidates that won the key frame's NMS
     footprint: np.ndarray      # (w, 64, 64) bool cells those candidates' masks cover
+    near_pass: np.ndarray      # (n,) bool records within the margin above a filter's threshold
+    near_fail: amg.MaskRecords  # candidates within the margin below a threshold (boxes set)
+    near: np.ndarray           # (m,) int64 prompts decoded on every frame (near a threshold, NMS winners)
+    options: amg.AmgOptions    # the generator's thresholds
 
 
 def to_cells(values: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
@@ -182,21 +191,32 @@ class SequenceReuse:
             cell = np.clip(np.floor(coords / CELL).astype(np.int64), 0, GRID - 1)     # (n, 2) x, y
             decode = dilate(changed, self.p.reuse_neighbourhood)[cell[:, 1], cell[:, 0]]
             decode[k.won[k.footprint[:, changed].any(axis=1)]] = True
+            decode[k.near] = True
             if decode.mean() > self.p.reuse_max_changed:
                 reason, decode = "changed", None
         self.last = ReuseStep(decode is None, reason, 1.0 if decode is None else float(decode.mean()))
         return decode
 
-    def merge(self, decoded: amg.MaskRecords, plan: np.ndarray | None, embedding: np.ndarray) -> amg.MaskRecords:
-        """The frame's candidates before NMS: on a key frame the decoded ones (kept as the new key),
-        else the key's candidates of the prompts not decoded plus `decoded`, in prompt order."""
+    def merge(self, decoded: amg.MaskRecords, plan: np.ndarray | None, embedding: np.ndarray,
+              options: amg.AmgOptions) -> amg.MaskRecords:
+        """The frame's candidates before NMS: on a key frame those of `decoded` that pass the
+        generator's filters (`options`; the generator decoded it with the thresholds lowered by
+        `reuse_score_margin`), kept as the new key with the near misses; else the key's candidates of
+        the prompts not decoded plus `decoded`, in prompt order."""
         c = self.cues
         if plan is None:
+            iou_t, stab_t, m = options.pred_iou_thresh, options.stability_score_thresh, self.p.reuse_score_margin
+            passes = ((iou_t <= 0) | (decoded.iou > np.float32(iou_t))) & \
+                ((stab_t <= 0) | (decoded.stability >= np.float32(stab_t)))
+            near = ((iou_t > 0) & (decoded.iou <= np.float32(iou_t + m))) | \
+                ((stab_t > 0) & (decoded.stability < np.float32(stab_t + m)))
+            out = decoded.filter(passes)
             emb = np.ascontiguousarray(embedding.reshape(-1, GRID, GRID), np.float32)
             self.key = _Key(c.index, c.image_hw, emb, float(np.linalg.norm(emb, axis=0).mean()),
                             None if c.depth is None else np.array(c.depth, np.float32), self._person,
-                            decoded, mask_cells(decoded.low_res), np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool))
-            self.age, out = 0, decoded
+                            out, mask_cells(out.low_res), np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool),
+                            near[passes], decoded.filter(~passes), np.zeros(0, np.int64), options)
+            self.age = 0
         else:
             k = self.key
             stale = k.cells[:, self._changed].any(axis=1)     # kept candidates reaching into a changed cell
@@ -210,6 +230,11 @@ class SequenceReuse:
     def settle(self, keep: np.ndarray) -> None:
         """The rows of `merge`'s result that won NMS: on a key frame, remembered with their masks' cells."""
         if self.last is not None and self.last.key:
+            k = self.key
             keep = np.asarray(keep, np.int64)    # rows of the key's records (merge returned them as they are)
-            self.key = replace(self.key, won=self.key.records.prompt[keep], footprint=self.key.cells[keep])
+            # the near misses that no winner with a higher score suppresses would win if they passed
+            both = k.records.filter(keep).cat(k.near_fail)
+            wins = amg.box_nms(both.box, both.iou, k.options.box_nms_thresh)
+            near = np.concatenate([k.records.prompt[keep[k.near_pass[keep]]], both.prompt[wins[wins >= len(keep)]]])
+            self.key = replace(k, won=k.records.prompt[keep], footprint=k.cells[keep], near=np.unique(near))
 

@@ -518,14 +518,17 @@ class MobileSamSegmenter:
         step = self.decoder.batch_size or max(1, len(prompts))                     # None: all at once; results do not depend on it
         batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
 
+        # A reuse key frame also keeps the candidates within the reuse margin below the filters' thresholds
+        margin = reuse.p.reuse_score_margin if reuse is not None and plan is None else 0.0
+
         def decode(b: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
-            return self._decode_batch(coords[b], points[b], crop, timer, b)
+            return self._decode_batch(coords[b], points[b], crop, timer, b, margin)
 
         parts = list(self._pool.map(decode, batches)) if self._pool else [decode(b) for b in batches]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
         if reuse is not None:
             with timer("reuse"):
-                data = reuse.merge(data, plan, emb)
+                data = reuse.merge(data, plan, emb, self.options)
         # Remove duplicates within this crop
         with timer("nms"):
             keep = amg.box_nms(data.box, data.iou, self.options.box_nms_thresh)
@@ -538,11 +541,12 @@ class MobileSamSegmenter:
         return data, sum((n for _, n in parts), _Counts())
 
     def _decode_batch(self, coords: np.ndarray, points: np.ndarray, crop: _Crop, timer: StepTimer,
-                      prompts: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
+                      prompts: np.ndarray, margin: float = 0.0) -> tuple[amg.MaskRecords, _Counts]:
         """One batch of grid points, coords (B, 2) in the 1024 frame, points (B, 2) in crop pixels and
         prompts (B,) their indices in the crop's grid:
         predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
-        resolution (the reference's `_process_batch`, IoU filter first)."""
+        resolution (the reference's `_process_batch`, IoU filter first). margin: lower the IoU and
+        stability thresholds by this (a reuse key frame's near misses; 0 for the exact generator)."""
         opt = self.options
         tokens = np.asarray(self.decoder.candidate_tokens)                        # (k,): 1..3, or the one mask
         k = tokens.size
@@ -552,7 +556,7 @@ class MobileSamSegmenter:
         iou = iou[:, tokens].reshape(-1).astype(np.float32)                        # (kB,) point-major
         # Filter by predicted IoU
         with timer("filters"):
-            cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh)) if opt.pred_iou_thresh > 0 \
+            cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh - margin)) if opt.pred_iou_thresh > 0 \
                 else np.arange(iou.size)
         if cand.size == 0:
             return amg.MaskRecords.empty(), _Counts(prompts=len(prompts))
@@ -566,12 +570,13 @@ class MobileSamSegmenter:
                                low_res=low_res, crop_index=np.full(n, crop.index, np.int64),
                                prompt=np.asarray(prompts, np.int64)[cand // k])
         # Filter at the crop's resolution, 32 masks at a time (bounded memory)
-        chunks = [self._filter_full_res(data.filter(slice(c0, c0 + 32)), crop, timer) for c0 in range(0, n, 32)]
+        chunks = [self._filter_full_res(data.filter(slice(c0, c0 + 32)), crop, timer, margin) for c0 in range(0, n, 32)]
         return amg.MaskRecords.empty().cat(*chunks), _Counts(n, len(np.unique(cand // k)), len(prompts))
 
-    def _filter_full_res(self, data: amg.MaskRecords, crop: _Crop, timer: StepTimer) -> amg.MaskRecords:
+    def _filter_full_res(self, data: amg.MaskRecords, crop: _Crop, timer: StepTimer,
+                         margin: float = 0.0) -> amg.MaskRecords:
         """Candidates' stability scores and boxes from their logits at the crop's resolution, and the
-        reference's filters on them."""
+        reference's filters on them (the stability threshold lowered by margin)."""
         opt = self.options
         with timer("upscale"):
             logits = amg.upscale_logits(data.low_res, crop.hw)                     # (n, h, w)
@@ -579,7 +584,7 @@ class MobileSamSegmenter:
             # Calculate stability score
             data = replace(data, stability=amg.stability_score(logits, opt.stability_score_offset))
             if opt.stability_score_thresh > 0:
-                keep = data.stability >= np.float32(opt.stability_score_thresh)
+                keep = data.stability >= np.float32(opt.stability_score_thresh - margin)
                 data, logits = data.filter(keep), logits[keep]
             # Threshold masks and calculate boxes
             data = replace(data, box=amg.masks_to_boxes(logits > 0.0))
