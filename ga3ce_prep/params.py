@@ -12,10 +12,13 @@ Everything else is derived from that one declaration:
 - `from_dict(cls, values, where)`: an instance from a pipeline file's mapping; an unknown or
   missing key is a ConfigError naming `where.key`;
 - `defaults(cls)`: the defaults as plain JSON values.
+
+`load_yaml` reads the files and `--set` values those mappings come from.
 """
 from __future__ import annotations
 
 import ast
+import re
 import dataclasses
 import functools
 import inspect
@@ -26,6 +29,8 @@ import types
 import typing
 from pathlib import Path
 from typing import Any, Literal
+
+import yaml
 
 from .errors import ConfigError
 
@@ -166,4 +171,20 @@ def from_dict(cls: type, values: dict[str, Any], where: str = "params") -> Any:
     return cls(**kw)
 
 
-__all__ = ["defaults", "field_docs", "file_fields", "from_dict", "json_schema", "param"]
+class _Yaml12Loader(yaml.SafeLoader):
+    """SafeLoader with YAML 1.2's booleans: only true/false (any case), so `off`, `on`, `yes` and `no`
+    stay strings, as the parameters' enums spell them (`reuse: off`, `io_binding: on`)."""
+
+
+_Yaml12Loader.yaml_implicit_resolvers = {k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:bool"]
+                                         for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_Yaml12Loader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                                    list("tTfF"))
+
+
+def load_yaml(text: str | bytes) -> Any:
+    """Parse a pipeline or config file, or a `--set` value, with YAML 1.2's booleans (`_Yaml12Loader`)."""
+    return yaml.load(text, Loader=_Yaml12Loader)
+
+
+__all__ = ["defaults", "field_docs", "file_fields", "from_dict", "json_schema", "load_yaml", "param"]

@@ -142,12 +142,11 @@ class Predictor:
         """The loaded pipeline and its checked, warmed backends (the no-depth variant swaps in
         FastDepth when the pipeline reads a sensor)."""
         if has_depth not in self._backends:
-            import yaml
-
+            from .params import load_yaml
             from .pipeline.config import apply_overrides, check_pipeline, load_pipeline, resolve_pipeline_path
 
             path = resolve_pipeline_path(self.pipeline)
-            raw = apply_overrides(yaml.safe_load(path.read_text()), self.overrides)
+            raw = apply_overrides(load_yaml(path.read_text()), self.overrides)
             if not has_depth and raw["stages"]["depth"]["backend"] == "sensor":
                 raw = apply_overrides(raw, NO_DEPTH)
             conf = load_pipeline(raw, Path.cwd(), check_files=False)

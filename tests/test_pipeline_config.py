@@ -59,6 +59,20 @@ def test_missing_stage_and_bad_yaml(tmp_path):
         load_pipeline("synthetic", tmp_path, overrides=["stages.view.params.seed"])
 
 
+def test_off_and_on_stay_words_in_files_and_overrides(tmp_path):
+    # YAML 1.1 reads off/on/yes/no as booleans, which the enums `reuse: off` and `io_binding: on` refuse
+    text = (PIPELINES_DIR / "synthetic-minisam.yaml").read_text()
+    text = text.replace("decoder_mode: fast", "decoder_mode: fast\n      reuse: off\n      io_binding: on")
+    (tmp_path / "p.yaml").write_text(text)
+    params = load_pipeline(tmp_path / "p.yaml", tmp_path, check_files=False).stages["objects"].params
+    assert (params["reuse"], params["io_binding"]) == ("off", "on")
+    conf = load_pipeline("synthetic-minisam", tmp_path, check_files=False,
+                         overrides=["stages.objects.params.reuse=sequence", "stages.objects.params.io_binding=off",
+                                    "stages.depth.params.keep_valid=false"])
+    assert (conf.stages["objects"].params["reuse"], conf.stages["objects"].params["io_binding"]) == ("sequence", "off")
+    assert conf.stages["depth"].params["keep_valid"] is False
+
+
 def test_missing_model_file_fails_before_any_work_naming_file_and_fix(tmp_path):
     with pytest.raises(ModelFileError) as e:
         run_pipeline("gafa", tmp_path, tmp_path / "s.zarr", progress=False)

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError, ModelFileError
+from ..params import load_yaml
 from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
 from .schema import SCHEMA_FILE
@@ -84,7 +85,7 @@ def _parse_override(item: str) -> tuple[list[str], Any]:
         raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. stages.view.params.mean_error_deg=30")
     key, value = item.split("=", 1)
     try:
-        return key.strip().split("."), yaml.safe_load(value)
+        return key.strip().split("."), load_yaml(value)
     except yaml.YAMLError as e:
         raise ConfigError(f"--set {item!r}: the value is not valid YAML ({e})") from None
 
@@ -153,7 +154,7 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
         text = path.read_bytes()
         where = os.path.abspath(path)  # the provenance records it: absolute, as every path there
         try:
-            raw = yaml.safe_load(text)
+            raw = load_yaml(text)
         except yaml.YAMLError as e:
             raise ConfigError(f"{path}: not valid YAML: {e}") from None
     raw = apply_overrides(raw if isinstance(raw, dict) else {}, overrides) if raw is not None else raw

@@ -16,6 +16,7 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError
+from ..params import load_yaml
 
 FORMATS: tuple[str, ...] = ("gfie", "cad120", "gafa")
 TARGET_KINDS: tuple[str, ...] = ("object", "space", "out_of_view")
@@ -254,7 +255,7 @@ def load_config(fmt: str, path: str | Path | None = None, overrides: dict | None
         if not path.is_file():
             raise ConfigError(f"synthetic config {path} not found")
         try:
-            data = yaml.safe_load(path.read_text()) or {}
+            data = load_yaml(path.read_text()) or {}
         except yaml.YAMLError as e:
             raise ConfigError(f"cannot parse {path}: {e}") from e
         _merge(cfg, data, str(path))
