@@ -220,12 +220,25 @@ class SequenceReuse:
         else:
             k = self.key
             stale = k.cells[:, self._changed].any(axis=1)     # kept candidates reaching into a changed cell
-            kept = k.records.filter(~plan[k.records.prompt] & ~stale)
-            out = kept.cat(decoded)
-            out = out.filter(np.argsort(out.prompt, kind="stable"))
+            kept = np.flatnonzero(~plan[k.records.prompt] & ~stale)
+            out = self._merged_winners(k.records, kept, decoded)
             self.age += 1
         self.last_index = c.index
         return out
+
+    def _merged_winners(self, key: amg.MaskRecords, kept: np.ndarray, decoded: amg.MaskRecords) -> amg.MaskRecords:
+        """key's rows `kept` and all of `decoded`, in prompt order (stable), less the candidates that
+        NMS will drop: NMS runs here on the scores and boxes alone, so only the winners' logits are
+        copied (the key holds about a thousand candidates, 256 KB each). The generator's NMS keeps
+        every row of the result, in the same order as it would have visited the full merge."""
+        n = len(key)
+        rows = np.concatenate([kept, n + np.arange(len(decoded))])
+        rows = rows[np.argsort(np.concatenate([key.prompt[kept], decoded.prompt]), kind="stable")]
+        box, iou = np.concatenate([key.box, decoded.box])[rows], np.concatenate([key.iou, decoded.iou])[rows]
+        rows = rows[np.sort(amg.box_nms(box, iou, self.key.options.box_nms_thresh))]
+        from_key = np.argsort(rows >= n, kind="stable")     # rows[from_key]: the key's rows first, as `cat` puts them
+        out = key.filter(rows[rows < n]).cat(decoded.filter(rows[rows >= n] - n))
+        return out.filter(np.argsort(from_key))
 
     def settle(self, keep: np.ndarray) -> None:
         """The rows of `merge`'s result that won NMS: on a key frame, remembered with their masks' cells."""
