@@ -37,9 +37,9 @@ def within(a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
     return np.linalg.norm(a[:, None] - b[None], axis=-1).min(axis=1) <= r
 
 
-def compare(seg, frames: list, params) -> dict:
-    """Run the segmenter over the frames exactly, then with reuse (`params`: ReuseParams)."""
-    from ga3ce_prep.estimators.amg_reuse import FrameCues, SequenceReuse
+def compare(seg, frames: list, settings: dict) -> dict:
+    """Run the segmenter over the frames exactly, then with reuse once per setting ({name:
+    ReuseParams}) -> {name: row}."""
     from ga3ce_prep.frames import load_depth, load_rgb
     from ga3ce_prep.geometry import object_positions
 
@@ -55,6 +55,13 @@ def compare(seg, frames: list, params) -> dict:
         r = seg.segment(rgb, out_size=depth.shape)
         exact_s.append(time.perf_counter() - t)
         exact.append(objects(r, f, depth))
+    return {name: _reuse_row(seg, data, objects, params, exact, exact_s) for name, params in settings.items()}
+
+
+def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> dict:
+    """The reuse run with `params` over `data` against the exact run's objects and seconds."""
+    from ga3ce_prep.estimators.amg_reuse import FrameCues, SequenceReuse
+
     state = SequenceReuse(params)
     reuse, reuse_s, steps = [], [], []
     for f, rgb, depth in data:
@@ -67,7 +74,7 @@ def compare(seg, frames: list, params) -> dict:
     e_in_r = np.concatenate([within(e, r, AGREE_M) for e, r in zip(exact, reuse)])
     r_in_e = np.concatenate([within(r, e, AGREE_M) for e, r in zip(exact, reuse)])
     share = np.array([s.decoded_share for s in steps])
-    return {"frames": len(frames), "exact_s": round(float(np.mean(exact_s)), 3), "reuse_s": round(float(np.mean(reuse_s)), 3),
+    return {"frames": len(data), "exact_s": round(float(np.mean(exact_s)), 3), "reuse_s": round(float(np.mean(reuse_s)), 3),
             "speedup": round(float(np.sum(exact_s) / np.sum(reuse_s)), 2),
             "key_frames": [i for i, s in enumerate(steps) if s.key], "key_reasons": [s.reason for s in steps if s.key],
             "decoded_share_mean": round(float(share.mean()), 3),
