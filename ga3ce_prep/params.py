@@ -18,11 +18,11 @@ Everything else is derived from that one declaration:
 from __future__ import annotations
 
 import ast
-import re
 import dataclasses
 import functools
 import inspect
 import io
+import re
 import textwrap
 import tokenize
 import types

@@ -50,6 +50,18 @@ class AmgOptions:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def iou_passes(self, iou: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(n,) bool: predicted IoUs (n,) float32 above pred_iou_thresh - margin (all with the filter off)."""
+        if self.pred_iou_thresh <= 0:
+            return np.ones(np.shape(iou), bool)
+        return iou > np.float32(self.pred_iou_thresh - margin)
+
+    def stability_passes(self, stability: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(n,) bool: stability scores (n,) float32 at least stability_score_thresh - margin (all with the filter off)."""
+        if self.stability_score_thresh <= 0:
+            return np.ones(np.shape(stability), bool)
+        return stability >= np.float32(self.stability_score_thresh - margin)
+
 
 LOW_RES = 256  # side of the decoder's low-resolution mask logits
 

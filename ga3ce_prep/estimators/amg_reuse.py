@@ -205,11 +205,9 @@ class SequenceReuse:
         the prompts not decoded plus `decoded`, in prompt order."""
         c = self.cues
         if plan is None:
-            iou_t, stab_t, m = options.pred_iou_thresh, options.stability_score_thresh, self.p.reuse_score_margin
-            passes = ((iou_t <= 0) | (decoded.iou > np.float32(iou_t))) & \
-                ((stab_t <= 0) | (decoded.stability >= np.float32(stab_t)))
-            near = ((iou_t > 0) & (decoded.iou <= np.float32(iou_t + m))) | \
-                ((stab_t > 0) & (decoded.stability < np.float32(stab_t + m)))
+            m = self.p.reuse_score_margin
+            passes = options.iou_passes(decoded.iou) & options.stability_passes(decoded.stability)
+            near = ~options.iou_passes(decoded.iou, -m) | ~options.stability_passes(decoded.stability, -m)
             out = decoded.filter(passes)
             emb = np.ascontiguousarray(embedding.reshape(-1, GRID, GRID), np.float32)
             self.key = _Key(c.index, c.image_hw, emb, float(np.linalg.norm(emb, axis=0).mean()),

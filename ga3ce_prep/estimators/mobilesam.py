@@ -556,8 +556,7 @@ class MobileSamSegmenter:
         iou = iou[:, tokens].reshape(-1).astype(np.float32)                        # (kB,) point-major
         # Filter by predicted IoU
         with timer("filters"):
-            cand = np.flatnonzero(iou > np.float32(opt.pred_iou_thresh - margin)) if opt.pred_iou_thresh > 0 \
-                else np.arange(iou.size)
+            cand = np.flatnonzero(opt.iou_passes(iou, margin))
         if cand.size == 0:
             return amg.MaskRecords.empty(), _Counts(prompts=len(prompts))
         # Decode the candidates' masks (each prompt's once)
@@ -584,7 +583,7 @@ class MobileSamSegmenter:
             # Calculate stability score
             data = replace(data, stability=amg.stability_score(logits, opt.stability_score_offset))
             if opt.stability_score_thresh > 0:
-                keep = data.stability >= np.float32(opt.stability_score_thresh - margin)
+                keep = opt.stability_passes(data.stability, margin)
                 data, logits = data.filter(keep), logits[keep]
             # Threshold masks and calculate boxes
             data = replace(data, box=amg.masks_to_boxes(logits > 0.0))
