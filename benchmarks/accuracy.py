@@ -16,13 +16,11 @@ runs are reused, unfinished ones resumed), so rerunning the same command continu
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import click
-from cpu_lock import cpu_lock
+from cpu_lock import CLI, cpu_lock, run_locked
 
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.train import TrainConfig
@@ -30,14 +28,7 @@ from ga3ce_prep.train.ablate import ABLATIONS, ablate
 from ga3ce_prep.train.cli import _model_sets
 
 ROOT = Path(__file__).resolve().parent.parent
-CLI = [sys.executable, "-m", "ga3ce_prep.cli"]
 RECIPE = TrainConfig()   # the default recipe
-
-
-def _run(cmd: list[str]) -> None:
-    click.echo("$ " + " ".join(cmd))
-    with cpu_lock():
-        subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"})
 
 
 @click.command()
@@ -66,13 +57,13 @@ def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_conf
     if not (data / "truth.h5").exists():
         cmd = CLI + ["synth", "--format", "gfie", "--out", str(data), "--scenes", str(scenes),
                      "--frames-per-scene", str(frames_per_scene), "--seed", str(seed), "--quiet"]
-        _run(cmd + (["--config", synth_config] if synth_config else []))
+        run_locked(cmd + (["--config", synth_config] if synth_config else []))
     if not (store / "zarr.json").exists():
         cmd = CLI + ["run", "--pipeline", pipeline, "--data", str(data), "--out", str(store), "--quiet"]
         cmd += ["--work", work] if work else []
         for s in sets:
             cmd += ["--set", s]
-        _run(cmd)
+        run_locked(cmd)
 
     base = TrainConfig(store=str(store), out=str(out / "runs"), epochs=epochs, lr=lr, view_noise=view_noise,
                        train_frames=train_frames, progress=False, model=ModelConfig(**_model_sets(model_set)))

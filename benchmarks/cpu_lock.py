@@ -2,11 +2,15 @@
 from __future__ import annotations
 
 import fcntl
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 LOCK = "/tmp/ga3ce-cpu.lock"
+CLI = [sys.executable, "-m", "ga3ce_prep.cli"]   # the ga3ce-prep command of this interpreter
 
 
 @contextmanager
@@ -25,3 +29,11 @@ def cpu_lock(enabled: bool = True) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def run_locked(cmd: list[str], threads: int = 2) -> None:
+    """Print and run a command under the lock with `threads` OpenMP/MKL threads; raise if it fails."""
+    print("$ " + " ".join(cmd), flush=True)
+    with cpu_lock():
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+        subprocess.run(cmd, check=True, env=env)

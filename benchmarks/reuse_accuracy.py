@@ -26,14 +26,12 @@ Writes OUT/reuse_accuracy.json.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import click
 import numpy as np
-from cpu_lock import cpu_lock
+from cpu_lock import CLI, cpu_lock, run_locked
 from reuse_sequence import AGREE_M, within
 
 from ga3ce_prep.store import open_store
@@ -42,14 +40,7 @@ from ga3ce_prep.train.ablate import ablate
 from ga3ce_prep.train.evaluate import evaluate
 
 ROOT = Path(__file__).resolve().parent.parent
-CLI = [sys.executable, "-m", "ga3ce_prep.cli"]
 MAE_TARGET = 0.2   # degrees
-
-
-def _run(cmd: list[str]) -> None:
-    click.echo("$ " + " ".join(cmd))
-    with cpu_lock():
-        subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"})
 
 
 def agreement(exact_path: Path, reuse_path: Path) -> dict:
@@ -79,14 +70,14 @@ def main(out, scenes, frames_per_scene, seed, points_per_side, seeds):
     out = Path(out)
     data = out / "data"
     if not (data / "truth.h5").exists():
-        _run(CLI + ["synth", "--format", "gfie", "--out", str(data), "--scenes", str(scenes),
+        run_locked(CLI + ["synth", "--format", "gfie", "--out", str(data), "--scenes", str(scenes),
                     "--frames-per-scene", str(frames_per_scene), "--seed", str(seed), "--quiet"])
     stores, seconds = {}, {}
     for mode in ("off", "sequence"):
         name = "exact" if mode == "off" else "reuse"
         store, summary = out / f"{name}.zarr", out / f"{name}_summary.json"
         if not (store / "zarr.json").exists() or not summary.exists():
-            _run(CLI + ["run", "--pipeline", "synthetic-minisam", "--data", str(data), "--out", str(store),
+            run_locked(CLI + ["run", "--pipeline", "synthetic-minisam", "--data", str(data), "--out", str(store),
                         "--work", str(out / "work"), "--shard-size", str(frames_per_scene), "--quiet",
                         "--summary-json", str(summary), "--overwrite",
                         "--set", f"stages.objects.params.points_per_side={points_per_side}",
