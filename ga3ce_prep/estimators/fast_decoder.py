@@ -49,9 +49,6 @@ from .fast_decoder_weights import decoder_weights
 from .mobilesam import MULTIMASK_TOKENS
 from .onnx_runtime import create_session
 
-# ORT would fuse the mask graph's second bias + GELU into BiasGelu, whose CPU kernel is about 4x
-# slower per element than Gelu's (onnxruntime 1.32, same outputs; docs/models.md "Speed")
-MASK_GRAPH_DISABLED_OPTIMIZERS = ("BiasGeluFusion",)
 # ONNX Runtime device of each provider the I/O binding path keeps tensors on (others: the host)
 PROVIDER_DEVICE = {"CUDAExecutionProvider": "cuda", "TensorrtExecutionProvider": "cuda"}
 
@@ -98,7 +95,7 @@ class FastDecoder:
         self._tokens = create_session(build_token_graph(w, d).SerializeToString(), providers, threads,
                                       "fast decoder (tokens)")
         self._masks = create_session(build_mask_graph(w, d).SerializeToString(), providers, threads,
-                                     "fast decoder (masks)", disabled_optimizers=MASK_GRAPH_DISABLED_OPTIMIZERS)
+                                     "fast decoder (masks)")
         self._img: dict[str, ort.OrtValue] | None = None
 
     def _value(self, array: np.ndarray, dtype: type = np.float32) -> ort.OrtValue:

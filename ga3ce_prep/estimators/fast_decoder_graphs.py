@@ -166,11 +166,19 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
     # The rest of output_upscaling: LayerNorm2d, GELU, the second transposed conv, GELU
     y = g.reshape(y, [0, P, 4, 64])
     y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))
+    # The second transposed conv with its bias as a 65th input row against a ones column: a concat
+    # of 1/64 of y costs less than an Add over the 2x larger output (docs/models.md, "Speed")
+    y_dims = g.slice(g.op("Shape", y), [0], [3], [0])
+    ones = g.op("Expand", g.const(np.ones((1, 1, 1, 1))), g.concat([y_dims, g.const([1], dtype=np.int64)], axis=0))
     w2 = w["up3.w"].transpose(0, 2, 3, 1).reshape(64, 4 * 32)                         # cols (kh2, kw2, o2)
-    z = g.gelu(g.add(g.mm(y, g.const(w2)), g.const(np.tile(w["up3.b"], 4))))           # (K, P, 4, 128)
-    z = g.reshape(z, [0, P * 16, 32])
-    # The hypernetwork product with the mask tokens' MLP outputs
-    g.output(g.mm(z, g.transpose(st["hyper_in"], [0, 2, 1])), "low_res_raw")          # (K, P*16, 4)
+    w2b = np.concatenate([w2, np.tile(w["up3.b"], 4)[None]], axis=0)                   # (65, 128)
+    z = g.reshape(g.gelu(g.mm(g.concat([y, ones], axis=-1), g.const(w2b))), [0, P * 4, 128])   # (K, 4P, 128)
+    # The hypernetwork product with the mask tokens' MLP outputs, per output pixel (kh2, kw2) of the
+    # second conv: z @ blockdiag(hyper_in^T x 4), an (128, 16) right side (a 4-column product wastes
+    # most of each vector)
+    hT = g.reshape(g.transpose(st["hyper_in"], [0, 2, 1]), [0, 1, 32, 1, 4])         # (K, 1, 32, 1, 4)
+    hblock = g.reshape(g.mul(hT, g.const(np.eye(4).reshape(4, 1, 4, 1))), [0, 128, 16])   # (K, 128, 16)
+    g.output(g.reshape(g.mm(z, hblock), [0, P * 16, 4]), "low_res_raw")               # (K, P*16, 4)
     return g.model()
 
 

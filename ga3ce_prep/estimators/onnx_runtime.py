@@ -83,13 +83,12 @@ def session_options(threads: int) -> ort.SessionOptions:
 
 
 def create_session(model: str | Path | bytes, providers: Sequence[str], threads: int,
-                   what: str = "model", disabled_optimizers: Sequence[str] = ()) -> ort.InferenceSession:
+                   what: str = "model") -> ort.InferenceSession:
     """An InferenceSession on a file path or serialized bytes; a missing or unreadable file raises
     ModelFileError naming it.
 
     providers: resolved execution providers in preference order (`resolve_providers`).
-    threads: intra-op threads (`RuntimeParams.threads` holds the default).
-    disabled_optimizers: ORT graph transformers to skip by name."""
+    threads: intra-op threads (`RuntimeParams.threads` holds the default)."""
     if not isinstance(model, bytes):
         path = Path(model)
         if not path.is_file():
@@ -98,8 +97,7 @@ def create_session(model: str | Path | bytes, providers: Sequence[str], threads:
     try:
         import onnxruntime as ort
 
-        return ort.InferenceSession(model, session_options(threads), providers=list(providers),
-                                    disabled_optimizers=list(disabled_optimizers) or None)
+        return ort.InferenceSession(model, session_options(threads), providers=list(providers))
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
         where = model if isinstance(model, str) else "(in memory)"
         raise ModelFileError(f"cannot load {what} ONNX {where}: {e}") from e
