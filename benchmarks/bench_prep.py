@@ -48,7 +48,7 @@ FRAMES_PER_SCENE = 4
 
 def world(base: Path, n_frames: int) -> Path:
     """A GFIE-format synthetic world of n_frames (4 per scene) at 640x480, generated once."""
-    from ga3ce_prep.synthetic.generate import generate
+    from ga3ce_prep.synthetic import generate
 
     root = base / "world"
     stamp = root / ".bench"

@@ -19,7 +19,7 @@ from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 
-from ga3ce_prep.synthetic.generate import generate  # noqa: E402
+from ga3ce_prep.synthetic import generate  # noqa: E402
 
 
 def main() -> None:

@@ -4,8 +4,8 @@ share of prompts decoded per frame in reuse mode, the key frames, and the agreem
 (per-mask median 3D points of the masks, measured depth): the share of exact objects with a reuse
 object within 2 cm and the reverse, pooled over the frames.
 
-The world: GFIE format, one scene of `frames` 640x480 frames (seed 6), generated once into
-out/bench_objects_world_<frames>/. Cues as the pipeline gives them: the measured depth and the
+The world: GFIE format, one scene of `frames` 640x480 frames (seed 6, or others: `pooled` sums
+rows over sequences), generated once into out/bench_objects_world_<frames>[_seed<seed>]/. Cues as the pipeline gives them: the measured depth and the
 frame's head box (GFIE has no body box).
 """
 from __future__ import annotations
@@ -18,14 +18,15 @@ import numpy as np
 AGREE_M = 0.02   # metres: an object agrees when the other run has one this close
 
 
-def sequence(out_dir: Path, frames: int) -> list:
-    """The FrameRefs of the world's one camera sequence, in frame order (generated if missing)."""
+def sequence(out_dir: Path, frames: int, seed: int = 6) -> list:
+    """The FrameRefs of the world's one camera sequence, in frame order (generated if missing); each
+    seed draws another room, objects, person and path."""
     from ga3ce_prep.datasets import open_dataset
     from ga3ce_prep.synthetic import generate
 
-    root = out_dir / f"bench_objects_world_{frames}"
+    root = out_dir / f"bench_objects_world_{frames}" if seed == 6 else out_dir / f"bench_objects_world_{frames}_seed{seed}"
     if not (root / "truth.h5").is_file():
-        generate("gfie", root, scenes=1, frames_per_scene=frames, seed=6, width=640, progress=False)
+        generate("gfie", root, scenes=1, frames_per_scene=frames, seed=seed, width=640, progress=False)
     refs = sorted(open_dataset("gfie", root), key=lambda f: (f.sequence, f.index))
     return [f for f in refs if f.sequence == refs[0].sequence]
 
@@ -83,6 +84,29 @@ def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> 
             "exact_objects": int(len(e_in_r)), "reuse_objects": int(len(r_in_e)),
             "exact_with_reuse_within_2cm": round(float(e_in_r.mean()), 4) if len(e_in_r) else None,
             "reuse_with_exact_within_2cm": round(float(r_in_e.mean()), 4) if len(r_in_e) else None}
+
+
+def pooled(rows: list[dict]) -> dict:
+    """Rows of several sequences as one: seconds per frame and decoded shares averaged over all
+    frames, the speed-up as total exact over total reuse seconds, agreement pooled over all objects."""
+    n = np.array([r["frames"] for r in rows], float)
+    exact, reuse = np.array([r["exact_s"] for r in rows]) * n, np.array([r["reuse_s"] for r in rows]) * n
+
+    def pool(share: str, count: str) -> float | None:
+        k = sum(r[count] for r in rows if r[share] is not None)
+        return round(sum(r[share] * r[count] for r in rows if r[share] is not None) / k, 4) if k else None
+
+    reuse_frames = [(r["frames"] - len(r["key_frames"]), r["decoded_share_reuse_frames"]) for r in rows
+                    if r["decoded_share_reuse_frames"] is not None]
+    m = sum(k for k, _ in reuse_frames)
+    return {"frames": int(n.sum()), "sequences": len(rows), "exact_s": round(float(exact.sum() / n.sum()), 3),
+            "reuse_s": round(float(reuse.sum() / n.sum()), 3), "speedup": round(float(exact.sum() / reuse.sum()), 2),
+            "key_frames": [i for r in rows for i in r["key_frames"]], "key_reasons": [k for r in rows for k in r["key_reasons"]],
+            "decoded_share_mean": round(float(sum(r["decoded_share_mean"] * r["frames"] for r in rows) / n.sum()), 3),
+            "decoded_share_reuse_frames": round(sum(k * v for k, v in reuse_frames) / m, 3) if m else None,
+            "exact_objects": sum(r["exact_objects"] for r in rows), "reuse_objects": sum(r["reuse_objects"] for r in rows),
+            "exact_with_reuse_within_2cm": pool("exact_with_reuse_within_2cm", "exact_objects"),
+            "reuse_with_exact_within_2cm": pool("reuse_with_exact_within_2cm", "reuse_objects")}
 
 
 def _pct(x: float | None) -> str:

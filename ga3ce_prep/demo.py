@@ -41,7 +41,7 @@ def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, w
     model, of the model without objects and of the v prior. Takes several minutes on 2 CPU cores;
     rerunning reuses every step."""
     from .pipeline import run_pipeline
-    from .synthetic.generate import generate
+    from .synthetic import generate
     from .train import TrainConfig, ablate, evaluate, format_eval_table
 
     root = Path(out)

@@ -8,7 +8,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from ga3ce_prep.synthetic.generate import generate  # noqa: E402
+from ga3ce_prep.synthetic import generate  # noqa: E402
 from ga3ce_prep.testing.worlds import GAFA_GAP, GAFA_WORLD, SMALL_WORLD, WORLD_640  # noqa: E402
 
 

@@ -22,7 +22,7 @@ from ga3ce_prep.cli import main
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing.worlds import SMALL, SMALL_WORLD
 

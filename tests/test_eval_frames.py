@@ -17,7 +17,7 @@ from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.config import load_config
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.testing.worlds import SMALL, SMALL_WORLD
 from ga3ce_prep.train import TrainConfig, evaluate, format_eval_table, train
 from ga3ce_prep.train.ablate import BY_NAME, format_ablation_table

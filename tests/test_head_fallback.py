@@ -13,7 +13,7 @@ from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.stages.head import DepthHead
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.config import load_config
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing.worlds import WORLD_640
 

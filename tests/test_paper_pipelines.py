@@ -11,7 +11,7 @@ from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ModelFileError
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.testing.paper_models import CROP_DEPTH_MM, write_paper_models
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch 2.13 on TorchScript

@@ -6,7 +6,7 @@ import pytest
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.frames import load_depth, load_rgb
 from ga3ce_prep.geometry import angular_error_deg, project
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.truth import TruthReader
 
 

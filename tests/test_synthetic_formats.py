@@ -18,7 +18,7 @@ from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.geometry import project
 from ga3ce_prep.synthetic.cli import synth
 from ga3ce_prep.synthetic.config import load_config
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.synthetic.writers import assign_splits
 

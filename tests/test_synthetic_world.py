@@ -9,7 +9,7 @@ from ga3ce_prep.geometry import angular_error_deg, back_project, depth_to_points
 from ga3ce_prep.synthetic.camera import intrinsics
 from ga3ce_prep.synthetic.config import DepthConfig, load_config
 from ga3ce_prep.synthetic.noise import depth_sigma
-from ga3ce_prep.synthetic.generate import generate
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.room import build_room
 from ga3ce_prep.synthetic.stats import object_snap, world_statistics
 from ga3ce_prep.synthetic.truth import TruthReader
@@ -197,3 +197,15 @@ def test_clustering_knob_concentrates_objects():
         return np.mean(d)
 
     assert spread(0.95) < 0.7 * spread(0.0)
+
+
+def test_generate_stays_a_function_once_its_module_is_loaded():
+    """`ga3ce_prep.synthetic.generate` is the documented entry point; a submodule of that name would
+    replace it on the package when first imported (a second call then raised "'module' object is not
+    callable")."""
+    import importlib
+
+    import ga3ce_prep.synthetic as synthetic
+
+    importlib.import_module("ga3ce_prep.synthetic.generation")
+    assert callable(synthetic.generate) and synthetic.generate.__module__ == "ga3ce_prep.synthetic"

@@ -33,7 +33,7 @@ def synth(fmt, out, scenes, frames_per_scene, seed, width, height, config, quiet
     ids (read it with ga3ce_prep.synthetic.truth.TruthReader).
     """
     os.environ.setdefault("OMP_NUM_THREADS", "2")
-    from .generate import generate
+    from .generation import generate
 
     rep = generate(fmt, out, scenes, frames_per_scene, seed=seed, width=width, height=height, config=config,
                    progress=not quiet)
