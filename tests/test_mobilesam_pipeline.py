@@ -96,3 +96,20 @@ def test_reuse_sequence_runs_per_shard_and_is_named_in_the_provenance(synth_worl
     assert steps + [seq().key] == [True, False, False, True]   # (random weights: every prompt changed, but
     # reuse_max_changed 1 keeps the key frame)
     assert b.provenance()["generator"] == "reuse: sequence"
+
+
+def test_reuse_runs_have_their_own_cache_version(synth_world):
+    """A change of reuse's defaults changes reuse outputs for the same written parameters: the objects
+    stage's cache key moves for reuse runs only, exact runs keep their entries."""
+    from ga3ce_prep.pipeline.config import load_pipeline
+    from ga3ce_prep.pipeline.run import stage_identity
+    from ga3ce_prep.stages.objects_mobilesam import MobileSAMObjects
+
+    def ident(*sets):
+        files = [f"stages.objects.params.encoder={ENC}", f"stages.objects.params.decoder={DEC}"]
+        return stage_identity(load_pipeline("synthetic-mobilesam", synth_world, overrides=[*files, *sets],
+                                            check_files=False), "objects")
+
+    exact, reuse = ident(), ident("stages.objects.params.reuse=sequence")
+    assert exact["version"] == MobileSAMObjects.version == ident("stages.objects.params.reuse=off")["version"]
+    assert reuse["version"] == f"{MobileSAMObjects.version}+reuse{MobileSAMObjects.REUSE_VERSION}"

@@ -114,7 +114,7 @@ def stage_identity(conf: PipelineConfig, stage: str) -> dict[str, Any]:
     sc = conf.stages[stage]
     cls = backend_class(stage, sc.backend)
     params = {k: v for k, v in conf.config["stages"][stage].get("params", {}).items()}
-    return {"stage": stage, "backend": sc.backend, "version": cls.version, "params": params,
+    return {"stage": stage, "backend": sc.backend, "version": cls.cache_version(params), "params": params,
             "data_files": {k: file_identity(p) for k, p in sorted(sc.data_files.items())},
             "models": {k: file_sha256(p) for k, p in sorted(sc.model_files.items())}}
 

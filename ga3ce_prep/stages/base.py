@@ -28,7 +28,8 @@ Adding a backend (e.g. `depth/onnx`):
 2. Register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`.
 3. `make schema` regenerates schemas/pipeline.schema.json from the dataclasses (a test fails
    until it is current). Bump `version` whenever the backend's output for the same parameters
-   changes, so stale cache entries are not reused.
+   changes (a changed default included), so stale cache entries are not reused; override
+   `cache_version` when only some settings' outputs changed.
 """
 from __future__ import annotations
 
@@ -104,6 +105,14 @@ class Backend:
     # frame numbers, None where a number is missing; FrameRefs only, the backend reads their pixels
     # itself. The pipeline finds them across shards and hashes them into the stage's cache key.
     window: ClassVar[int] = 0
+
+
+    @classmethod
+    def cache_version(cls, params: dict[str, Any]) -> str:
+        """The version in the cache key of this backend run with `params` (as the pipeline file writes
+        them): `version`, unless a backend whose change touched only some settings' outputs says so
+        (a changed default changes outputs "for the same params" too)."""
+        return cls.version
 
     def __init__(self, params: dict[str, Any], ctx: BackendContext):
         self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")

