@@ -18,7 +18,7 @@ Steps, each under /tmp/ga3ce-cpu.lock with 2 threads and each resumed when rerun
 On a small world the first difference is dominated by which epoch's checkpoint the validation split
 picks (the validation MAE moves by degrees from epoch to epoch), so take many seeds (they are
 cheap there) and read it beside its standard error. The last epoch's weights skip that choice
-(their test MAE varied about half as much over seeds on the 720-frame world); the second
+(their test MAE varied about two thirds as much over 40 seeds on the 720-frame world); the second
 difference has no such noise.
 
     python benchmarks/reuse_accuracy.py --out out/reuse_accuracy [--scenes 24 --frames-per-scene 30]
