@@ -285,12 +285,14 @@ def reuse_rows(args) -> dict:
         for seed, seq in sequences.items():
             for setting, row in rs.compare(seg, seq, settings).items():
                 key = f"{name}, reuse {setting}" + (f", seed {seed}" if len(seeds) > 1 else "")
-                rows[key] = per_seed.setdefault(setting, {})[seed] = row
+                rows[key] = row
+                per_seed.setdefault(setting, {})[seed] = row
                 rs.print_row(key, row)
         if len(seeds) > 1:   # all sequences as one row per setting
             for setting, by_seed in per_seed.items():
-                rows[f"{name}, reuse {setting}, {len(seeds)} sequences"] = row = rs.pooled(list(by_seed.values()))
-                rs.print_row(f"{name}, reuse {setting}, {len(seeds)} sequences", row)
+                key = f"{name}, reuse {setting}, {len(seeds)} sequences"
+                rows[key] = rs.pooled(list(by_seed.values()))
+                rs.print_row(key, rows[key])
     return {"params": dataclasses.asdict(params), "seeds": seeds, "rows": rows}
 
 

@@ -5,8 +5,8 @@ share of prompts decoded per frame in reuse mode, the key frames, and the agreem
 object within 2 cm and the reverse, pooled over the frames.
 
 The world: GFIE format, one scene of `frames` 640x480 frames (seed 6, or others: `pooled` sums
-rows over sequences), generated once into out/bench_objects_world_<frames>[_seed<seed>]/. Cues as the pipeline gives them: the measured depth and the
-frame's head box (GFIE has no body box).
+rows over sequences), generated once into out/bench_objects_world_<frames>_seed<seed>/. Cues as
+the pipeline gives them: the measured depth and the frame's head box (GFIE has no body box).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def sequence(out_dir: Path, frames: int, seed: int = 6) -> list:
     from ga3ce_prep.datasets import open_dataset
     from ga3ce_prep.synthetic import generate
 
-    root = out_dir / f"bench_objects_world_{frames}" if seed == 6 else out_dir / f"bench_objects_world_{frames}_seed{seed}"
+    root = out_dir / f"bench_objects_world_{frames}_seed{seed}"
     if not (root / "truth.h5").is_file():
         generate("gfie", root, scenes=1, frames_per_scene=frames, seed=seed, width=640, progress=False)
     refs = sorted(open_dataset("gfie", root), key=lambda f: (f.sequence, f.index))

@@ -106,7 +106,6 @@ class Backend:
     # itself. The pipeline finds them across shards and hashes them into the stage's cache key.
     window: ClassVar[int] = 0
 
-
     @classmethod
     def cache_version(cls, params: dict[str, Any]) -> str:
         """The version in the cache key of this backend run with `params` (as the pipeline file writes
