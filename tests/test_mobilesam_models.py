@@ -130,6 +130,60 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     assert all(made_by.get(n.input[0]) != "Add" for n in gelus)
 
 
+def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attention(tmp_path):
+    """The attentions are held as a0cT (a free reshape) and read through transposed products that
+    ONNX Runtime fuses (docs/models.md, "Layout"), and outputs are written by the nodes that compute
+    them: the optimized token and mask graphs have no Identity, no transpose of a (B, H, T, P)
+    attention (cat_heads' perm) and no last-two-axes transpose left unfused."""
+    import onnxruntime as ort
+
+    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder_tokens import build_token_graph
+    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
+    from ga3ce_prep.estimators.onnx_runtime import session_options
+
+    w = decoder_weights(DEC)
+    d = Derived.from_weights(w)
+    for name, model in (("tokens", build_token_graph(w, d)), ("masks", build_mask_graph(w, d))):
+        so = session_options(1)
+        so.optimized_model_filepath = str(tmp_path / f"{name}.onnx")
+        ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
+        nodes = onnx.load(so.optimized_model_filepath).graph.node
+        made_by = {o: n.op_type for n in nodes for o in n.output}
+        transposes = [n for n in nodes if n.op_type == "Transpose"]
+        perms = [list(a.ints) for n in transposes for a in n.attribute if a.name == "perm"]
+        fused = [n for n in nodes if n.op_type == "FusedMatMul"
+                 and any(a.name in ("transA", "transB") and a.i for a in n.attribute)]
+        assert not [n for n in nodes if n.op_type == "Identity"], name
+        if name == "tokens":
+            assert [0, 3, 1, 2] not in perms and [0, 2, 1] not in perms, perms
+            assert len(fused) >= 8
+        else:   # the (K, 2HT + 2, P) left side, concatenated, is read through transA
+            assert not [n for n in transposes if made_by.get(n.input[0]) == "Concat"]
+            assert len(fused) == 1
+
+
+def test_graph_builder_outputs_rename_their_producer():
+    """GraphBuilder.output renames the producing node's output (no copy), keeps later uses of the old
+    name working, and falls back to an Identity for an input or a value exposed twice."""
+    import onnxruntime as ort
+
+    from ga3ce_prep.estimators.onnx_graph import GraphBuilder
+
+    g = GraphBuilder("t")
+    x = g.input("x", [2])
+    y = g.mul(x, g.const([2.0, 3.0]))
+    g.output(y, "a")
+    g.output(g.add(y, g.const(1.0)), "b")           # y used after it was exposed
+    g.output(y, "c")                                # exposed twice
+    g.output(x, "d")                                # a graph input
+    model = g.model()
+    assert [n.op_type for n in model.graph.node].count("Identity") == 2
+    outs = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        ["a", "b", "c", "d"], {"x": np.array([1.0, 2.0], np.float32)})
+    np.testing.assert_array_equal(np.stack(outs), [[2, 6], [3, 7], [2, 6], [1, 2]])
+
+
 def test_fast_decoder_batch_size_follows_the_provider():
     assert FastDecoder(DEC, CPU, 1).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
 

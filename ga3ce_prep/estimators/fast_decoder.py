@@ -28,7 +28,7 @@ Two ways to run the graphs (the same arithmetic, the same outputs):
   host memory, so on a GPU the image tensors and the per-prompt state would cross the bus twice.
 - **I/O binding** (`io_binding=True`, the default with the CUDA provider, `use_io_binding`): all
   prompts of a crop in one token-graph call (`batch_size` None); the image graph's outputs and the
-  token graph's state (`STATE`: `A0c`, `A1c` (B, 4096, HT), ...) are bound as OrtValues on the
+  token graph's state (`STATE`: `A0cT`, `A1cT` (B, HT, 4096), ...) are bound as OrtValues on the
   provider's device and fed as they are to the next graph; only the IoU predictions (B, 4) and the
   wanted prompts' low-res logits come back to the host. The mask graph runs `MASK_CHUNK` prompts
   per call (bounded device memory: about 30 MB of activations per prompt). On CPU it runs the same

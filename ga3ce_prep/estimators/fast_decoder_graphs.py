@@ -23,8 +23,9 @@ IMAGE_TENSORS: dict[str, list[int]] = {
     "SK1T": [H, D, P], "SV1": [H, P, D], "SQ1T": [H, D, P], "Sy0T": [H, D, P], "Sy1T": [H, D, P],
     "S2sq": [P, 1], "S2b": [P, 1], "SKfT": [H, D, P], "SVf": [H, P, D], "SC": [P, C]}
 TOKEN_IMAGE_INPUTS = tuple(IMAGE_TENSORS)[:-1]
-# The token graph's per-prompt outputs that the mask graph gathers (B prompts, T = 5 + N tokens)
-STATE: dict[str, list] = {"A0c": ["B", P, "HT"], "A1c": ["B", P, "HT"], "r1": ["B", P, 1], "r2": ["B", P, 1],
+# The token graph's per-prompt outputs that the mask graph gathers (B prompts, T = 5 + N tokens; the
+# attentions a0c, a1c transposed, as the token graph holds them)
+STATE: dict[str, list] = {"A0cT": ["B", "HT", P], "A1cT": ["B", "HT", P], "r1": ["B", P, 1], "r2": ["B", P, 1],
                           "Vt0": ["B", "T", H * D], "Vt1": ["B", "T", H * D], "hyper_in": ["B", 4, 32]}
 
 
@@ -149,20 +150,22 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
     st = {k: g.op("Gather", g.input(k, shape), idx, axis=0) for k, shape in STATE.items()}
     vt0h = g.split_heads(st["Vt0"], [0, 2, 1, 3])                                      # (K, H, T, D)
     vt1h = g.split_heads(st["Vt1"], [0, 2, 1, 3])
-    # keys2 @ wc + conv_bias = r2 r1 SC + [r2 r1 A0c | r2 A1c | r2 | 1] @ [rc0; rc1; c_beta; c_const]:
-    # one product, 2 passes over the (K, P, 256) result
+    # keys2 @ wc + conv_bias = r2 r1 SC + [r2 r1 a0c | r2 a1c | r2 | 1] @ [rc0; rc1; c_beta; c_const]:
+    # one product (its left side built transposed from A0cT, A1cT, and read through a fused transpose),
+    # 2 passes over the (K, P, 256) result
     g2wc = d.g2[:, None] * d.wc
     rc0 = g.blockdiag(vt0h, d.wn0 @ g2wc)                                              # (K, HT, 256)
     rc1 = g.blockdiag(vt1h, d.wo1 @ g2wc)
     c_beta = d.beta @ g2wc                                                              # (256,)
     c_const = w["layers.1.norm4.b"] @ d.wc + d.conv_bias
-    r2, r21 = st["r2"], g.mul(st["r2"], st["r1"])
-    ones = g.add(g.mul(r2, g.const(0.0)), g.const(1.0))
-    left = g.concat([g.mul(st["A0c"], r21), g.mul(st["A1c"], r2), r2, ones], axis=-1)   # (K, P, 2HT + 2)
+    r2, r21 = st["r2"], g.mul(st["r2"], st["r1"])                                      # (K, P, 1)
+    r2T, r21T = g.reshape(r2, [0, 1, P]), g.reshape(r21, [0, 1, P])                    # (K, 1, P), free
+    ones = g.add(g.mul(r2T, g.const(0.0)), g.const(1.0))
+    leftT = g.concat([g.mul(st["A0cT"], r21T), g.mul(st["A1cT"], r2T), r2T, ones], axis=1)   # (K, 2HT + 2, P)
     k_dim = g.slice(g.op("Shape", rc0), [0], [1], [0])
     right = g.concat([rc0, rc1, g.op("Expand", g.const(np.stack([c_beta, c_const])[None]),
                                      g.concat([k_dim, g.const([2, C], dtype=np.int64)], axis=0))], axis=1)
-    y = g.add(g.mul(sc, r21), g.mm(left, right))                                       # (K, P, 256)
+    y = g.add(g.mul(sc, r21), g.mm(g.transpose(leftT, [0, 2, 1]), right))             # (K, P, 256)
     # The rest of output_upscaling: LayerNorm2d, GELU, the second transposed conv, GELU
     y = g.reshape(y, [0, P, 4, 64])
     y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))

@@ -6,6 +6,12 @@ The image stream is never formed per prompt: after layer 0 it is held as the fac
 keys1 = r1 * (s0 + a0c @ m0) * g1 + b1, after layer 1 as those of keys2; every product with it is
 re-associated through them. docs/models.md, "How the fast decoder is fast", derives each term under
 the names used here.
+
+The attentions a0c, a1c (B, P, HT) are only ever held transposed, as a0cT, a1cT (B, HT, P): a free
+reshape of the (B, H, T, P) softmax output, where a0c would cost a transpose of it. Products with
+a0c on the right read a0cT through a transposed product (`mm_t`, a FusedMatMul for ONNX Runtime),
+those with a0c on the left are taken transposed ((a0c @ X)^T = X^T @ a0cT), and row sums over HT
+become column sums (`coldot`).
 """
 from __future__ import annotations
 
@@ -71,21 +77,22 @@ class _TokenGraph(DecoderGraph):
         e = self.op("Exp", self.sub(x, self.op("ReduceMax", x, axes=[2], keepdims=1)))
         return self.div(e, self.reduce_sum(e, [2]))
 
-    def cat_heads(self, a: str) -> str:
-        """(B, H, T, P) -> (B, P, H*T): the heads side by side."""
-        return self.reshape(self.transpose(a, [0, 3, 1, 2]), [0, P, -1])
-
     def cat_heads_T(self, a: str) -> str:
-        """(B, H, T, P) -> (B, H*T, P), free."""
+        """(B, H, T, P) -> (B, H*T, P), the heads stacked: a_c^T, free."""
         return self.reshape(a, [0, -1, P])
+
+    def mm_t(self, a: str, b: str) -> str:
+        """a @ b^T over the last two axes: ONNX Runtime fuses the Transpose into its product
+        (FusedMatMul with transB), so b^T is never written out."""
+        return self.mm(a, self.transpose(b, [0, 2, 1]))
 
     def r_row(self, r: str) -> str:
         """(B, P, 1) -> (B, 1, 1, P), to scale logits per image position."""
         return self.reshape(r, [0, 1, 1, P])
 
-    def rowdot(self, a: str, b: str) -> str:
-        """Sum over the last axis of a * b -> (B, P, 1)."""
-        return self.reduce_sum(self.mul(a, b), [-1])
+    def coldot(self, a: str, b: str) -> str:
+        """(B, K, P) x (B, K, P) summed over K -> (B, P, 1): the row sums of a^T * b^T."""
+        return self.reshape(self.reduce_sum(self.mul(a, b), [1]), [0, P, 1])
 
     def headdot(self, a: str, b: str) -> str:
         """(B, H, T, P) x (B, H, T, P) summed over heads and tokens -> (B, P, 1)."""
@@ -106,10 +113,10 @@ class _TokenGraph(DecoderGraph):
         qr = self.reshape(self.mm(q, r), self.shape_ht([0, -1]))                       # (B, H*tq, HT)
         return self.reshape(self.mm(qr, a_cT), [0, H, tq, P])
 
-    def attention_through(self, p: str, a_c: str, tq: int = -1) -> str:
-        """Attention weights p (B, H, tq, P) through a_c (B, P, HT) -> (B, H, tq, HT): p's product
-        with the attention part a_c @ r of factored values is then (p @ a_c) @ r."""
-        return self.reshape(self.mm(self.reshape(p, [0, -1, P]), a_c), self.shape_ht([0, H, tq]))
+    def attention_through(self, p: str, a_cT: str, tq: int = -1) -> str:
+        """Attention weights p (B, H, tq, P) through a_c (held as a_cT (B, HT, P)) -> (B, H, tq, HT):
+        p's product with the attention part a_c @ r of factored values is then (p @ a_c) @ r."""
+        return self.reshape(self.mm_t(self.reshape(p, [0, -1, P]), a_cT), self.shape_ht([0, H, tq]))
 
     def factored_logits(self, q: str, r: str, image_T: str, rk: str, a_cT: str, const: np.ndarray) -> str:
         """Logits of q (B, H, T, D) against keys K = r * (S + a_c @ rk) + const (per head):
@@ -124,8 +131,7 @@ class _Keys1:
     """The image stream after layer 0, factored: keys1 = r1 * (s0 + a0c @ m0) * g1 + b1."""
 
     a0: str  # (B, H, T, P) layer 0's image-to-token attention (softmax over T)
-    a0c: str  # (B, P, HT) its heads side by side
-    a0cT: str  # (B, HT, P)
+    a0cT: str  # (B, HT, P) its heads stacked: a0c (B, P, HT) transposed
     vt0: str  # (B, T, 128) its token values
     vt0h: str  # (B, H, T, D) per head
     m0: str  # (B, HT, C) blockdiag(vt0) @ wo0
@@ -137,8 +143,7 @@ class _Keys2:
     """The image stream after layer 1, factored: keys2 = r2 * (r1 * u0 + u1) * g2 + b2 with
     u0 = s2 + a0c @ n0 and u1 = a1c @ m1 + beta."""
 
-    a1c: str  # (B, P, HT) layer 1's image-to-token attention, heads side by side
-    a1cT: str  # (B, HT, P)
+    a1cT: str  # (B, HT, P) layer 1's image-to-token attention, heads stacked: a1c transposed
     n0: str  # (B, HT, C) blockdiag(vt0) @ wn0
     m1: str  # (B, HT, C) blockdiag(vt1) @ wo1
     r2: str  # (B, P, 1) 1 / std of layer 1's norm4 input
@@ -159,7 +164,7 @@ def build_token_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
     iou, hyper = _iou_and_hypernetwork_heads(g, out_tokens)
     g.output(iou, "iou_predictions")
     hyper_in = g.concat(hyper, axis=1)                                                 # (B, 4, 32)
-    for name, value in zip(STATE, (keys1.a0c, keys2.a1c, keys1.r1, keys2.r2, keys1.vt0, vt1, hyper_in)):
+    for name, value in zip(STATE, (keys1.a0cT, keys2.a1cT, keys1.r1, keys2.r2, keys1.vt0, vt1, hyper_in)):
         g.output(value, name)
     return g.model()
 
@@ -205,14 +210,15 @@ def _two_way_layer0(g: _TokenGraph, tokens: str) -> tuple[str, _Keys1]:
     # Cross attention block, image embedding attending to tokens: keys1, factored
     kt0, vt0 = g.token_keys_values(queries, tokens, "layers.0")                        # (B, H, T, D), (B, T, 128)
     a0 = g.softmax_tokens(g.mm(kt0, img["Qi0T"]))                                      # (B, H, T, P)
-    a0c, a0cT = g.cat_heads(a0), g.cat_heads_T(a0)
+    a0cT = g.cat_heads_T(a0)                                                           # (B, HT, P)
     vt0h = g.split_heads(vt0, [0, 2, 1, 3])                                            # (B, H, T, D)
     m0 = g.blockdiag(vt0h, g.d.wo0)                                                    # (B, HT, C)
-    # norm4's statistics: |s0 + a0c @ m0|^2 = ssq + 2 <a0, m0s0> + rowdot(a0c, a0c @ m0m0)
-    m0m0 = g.mm(m0, g.transpose(m0, [0, 2, 1]))                                        # (B, HT, HT)
+    # norm4's statistics: |s0 + a0c @ m0|^2 = ssq + 2 <a0, m0s0> + rowdot(a0c, a0c @ m0m0), the last
+    # term as coldot(a0cT, m0m0 @ a0cT) (m0m0 is symmetric)
+    m0m0 = g.mm_t(m0, m0)                                                              # (B, HT, HT)
     m0s0 = g.mm(vt0h, img["Sx0T"])                                                     # (B, H, T, P)
-    sq1 = g.add(g.add(img["ssq"], g.mul(g.const(2.0), g.headdot(a0, m0s0))), g.rowdot(a0c, g.mm(a0c, m0m0)))
-    return queries, _Keys1(a0=a0, a0c=a0c, a0cT=a0cT, vt0=vt0, vt0h=vt0h, m0=m0, r1=g.inv_std(sq1))
+    sq1 = g.add(g.add(img["ssq"], g.mul(g.const(2.0), g.headdot(a0, m0s0))), g.coldot(a0cT, g.mm(m0m0, a0cT)))
+    return queries, _Keys1(a0=a0, a0cT=a0cT, vt0=vt0, vt0h=vt0h, m0=m0, r1=g.inv_std(sq1))
 
 
 def _two_way_layer1(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1) -> tuple[str, str, str]:
@@ -232,7 +238,7 @@ def _two_way_layer1(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1) ->
     # and values: p1 @ (keys1 @ Wv + bv) = p1r @ SV1 + (p1r @ a0c) @ rv1 + v1_const
     p1r = g.mul(p1, g.r_row(keys1.r1))
     rv1 = g.split_heads(g.mm(keys1.m0, g.const(g1w * w[T2I + ".v_proj.w"])), [0, 2, 1, 3])   # (B, H, HT, D)
-    p1_a0 = g.attention_through(p1r, keys1.a0c)                                        # (B, H, T, HT)
+    p1_a0 = g.attention_through(p1r, keys1.a0cT)                                        # (B, H, T, HT)
     v1_const = w["layers.0.norm4.b"] @ w[T2I + ".v_proj.w"] + w[T2I + ".v_proj.b"]     # (128,)
     o1 = g.add(g.add(g.mm(p1r, img["SV1"]), g.mm(p1_a0, rv1)), g.const(v1_const.reshape(H, 1, D)))
     queries = g.ln(g.add(queries, g.linear_w(g.merge_heads(o1), T2I + ".out_proj")), "layers.1.norm2")
@@ -251,26 +257,29 @@ def _image_stream_stats(g: _TokenGraph, keys1: _Keys1, a1: str, vt1: str) -> _Ke
     """Layer 1's image-to-token update of the image stream and its norm4 statistics, from Gram
     matrices: |r1 * u0 + u1|^2 = r1^2 u0u0 + 2 r1 u0u1 + u1u1_sq + 2 u1_cross."""
     d, img = g.d, g.img
-    a1c, a1cT = g.cat_heads(a1), g.cat_heads_T(a1)                                     # (B, P, HT), (B, HT, P)
+    a1cT = g.cat_heads_T(a1)                                                           # (B, HT, P)
     vt1h = g.split_heads(vt1, [0, 2, 1, 3])                                            # (B, H, T, D)
     n0 = g.blockdiag(keys1.vt0h, d.wn0)                                                # (B, HT, C)
     m1 = g.blockdiag(vt1h, d.wo1)                                                      # (B, HT, C)
-    n0T, m1T = g.transpose(n0, [0, 2, 1]), g.transpose(m1, [0, 2, 1])
     n0s2 = g.mm(keys1.vt0h, img["Sy0T"])                                               # (B, H, T, P)
     m1s2 = g.mm(vt1h, img["Sy1T"])                                                     # (B, H, T, P)
-    beta = g.const(d.beta.reshape(C, 1))
-    # a0c @ [n0 n0^T | n0 m1^T | n0 beta]: one product, then its three column blocks
-    a0n0 = g.mm(keys1.a0c, g.concat([g.mm(n0, n0T), g.mm(n0, m1T), g.mm(n0, beta)], axis=-1))   # (B, P, 2HT + 1)
-    a0n0n0 = g.op("Slice", a0n0, g.const([0], dtype=np.int64), g.ht, g.const([2], dtype=np.int64))
-    a0n0m1 = g.op("Slice", a0n0, g.ht, g.mul(g.ht, g.const([2], dtype=np.int64)), g.const([2], dtype=np.int64))
-    a0n0b = g.slice(a0n0, [-1], [2 ** 62], [2])
-    u0u0 = g.add(g.add(img["S2sq"], g.mul(g.const(2.0), g.headdot(keys1.a0, n0s2))), g.rowdot(keys1.a0c, a0n0n0))
-    u1u1_sq = g.add(g.rowdot(a1c, g.mm(a1c, g.mm(m1, m1T))), g.const(float(d.beta @ d.beta)))
-    u0u1 = g.add(g.add(g.headdot(a1, m1s2), g.rowdot(a1c, a0n0m1)), g.add(img["S2b"], a0n0b))
-    u1_cross = g.mm(a1c, g.mm(m1, beta))
+    beta_row = g.const(d.beta.reshape(1, C))
+
+    def col(x: str) -> str:  # (B, 1, P) -> (B, P, 1), free
+        return g.reshape(x, [0, P, 1])
+
+    # a0c @ n0 n0^T, a0c @ n0 m1^T and a0c @ n0 beta, transposed: (n0 n0^T) @ a0cT, (m1 n0^T) @ a0cT,
+    # (beta^T n0^T) @ a0cT
+    a0n0n0T = g.mm(g.mm_t(n0, n0), keys1.a0cT)                                         # (B, HT, P)
+    a0n0m1T = g.mm(g.mm_t(m1, n0), keys1.a0cT)                                         # (B, HT, P)
+    a0n0b = col(g.mm(g.mm_t(beta_row, n0), keys1.a0cT))                                # (B, P, 1)
+    u0u0 = g.add(g.add(img["S2sq"], g.mul(g.const(2.0), g.headdot(keys1.a0, n0s2))), g.coldot(keys1.a0cT, a0n0n0T))
+    u1u1_sq = g.add(g.coldot(a1cT, g.mm(g.mm_t(m1, m1), a1cT)), g.const(float(d.beta @ d.beta)))
+    u0u1 = g.add(g.add(g.headdot(a1, m1s2), g.coldot(a1cT, a0n0m1T)), g.add(img["S2b"], a0n0b))
+    u1_cross = col(g.mm(g.mm_t(beta_row, m1), a1cT))                                   # (B, P, 1)
     r1 = keys1.r1
     sq2 = g.add(g.add(g.mul(g.mul(r1, r1), u0u0), u1u1_sq), g.mul(g.const(2.0), g.add(g.mul(r1, u0u1), u1_cross)))
-    return _Keys2(a1c=a1c, a1cT=a1cT, n0=n0, m1=m1, r2=g.inv_std(sq2))
+    return _Keys2(a1cT=a1cT, n0=n0, m1=m1, r2=g.inv_std(sq2))
 
 
 def _final_attn_token_to_image(g: _TokenGraph, queries: str, tokens: str, keys1: _Keys1, keys2: _Keys2) -> str:
@@ -297,8 +306,8 @@ def _final_attn_token_to_image(g: _TokenGraph, queries: str, tokens: str, keys1:
     pf_r2r1 = g.mul(pf_r2, r1_row)
     rvf0 = g.split_heads(g.mm(keys2.n0, g.const(g2wv)), [0, 2, 1, 3])                  # (B, H, HT, D)
     rvf1 = g.split_heads(g.mm(keys2.m1, g.const(g2wv)), [0, 2, 1, 3])
-    pf_a0 = g.attention_through(pf_r2r1, keys1.a0c, N_OUT)                             # (B, H, 5, HT)
-    pf_a1 = g.attention_through(pf_r2, keys2.a1c, N_OUT)
+    pf_a0 = g.attention_through(pf_r2r1, keys1.a0cT, N_OUT)                             # (B, H, 5, HT)
+    pf_a1 = g.attention_through(pf_r2, keys2.a1cT, N_OUT)
     vf_beta = (d.beta @ g2wv).reshape(H, 1, D)
     vf_const = (w["layers.1.norm4.b"] @ w[F + ".v_proj.w"] + w[F + ".v_proj.b"]).reshape(H, 1, D)
     of = g.add(g.add(g.mm(pf_r2r1, img["SVf"]), g.mm(pf_a0, rvf0)), g.mm(pf_a1, rvf1))

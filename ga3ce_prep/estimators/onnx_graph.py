@@ -21,6 +21,7 @@ class GraphBuilder:
         self.initializers: list[onnx.TensorProto] = []
         self.inputs: list[onnx.ValueInfoProto] = []
         self.outputs: list[onnx.ValueInfoProto] = []
+        self._renamed: dict[str, str] = {}   # values exposed as graph outputs under another name
         self._n = 0
 
     def _fresh(self, stem: str) -> str:
@@ -40,14 +41,28 @@ class GraphBuilder:
         return name
 
     def output(self, value: str, name: str, elem_type: int = TensorProto.FLOAT) -> str:
-        """Expose `value` as graph output `name` (an Identity node renames it)."""
-        self.nodes.append(helper.make_node("Identity", [value], [name]))
+        """Expose `value` as graph output `name`. The node that computes it writes `name` directly (an
+        Identity node would copy the tensor: 3.7 MB per call for the fast decoder's A0cT); a graph
+        input, an initializer or a value exposed already goes through an Identity. Later calls may
+        still name `value`."""
+        value = self._renamed.get(value, value)
+        producer = next((n for n in reversed(self.nodes) if value in n.output), None)
+        if producer is None or any(o.name == value for o in self.outputs):
+            self.nodes.append(helper.make_node("Identity", [value], [name]))
+        else:
+            for n in self.nodes:
+                for i, x in enumerate(n.input):
+                    if x == value:
+                        n.input[i] = name
+            producer.output[list(producer.output).index(value)] = name
+            self._renamed[value] = name
         self.outputs.append(helper.make_tensor_value_info(name, elem_type, None))
         return name
 
     def op(self, op_type: str, *inputs: str, **attrs) -> str:
         out = self._fresh(op_type)
-        self.nodes.append(helper.make_node(op_type, list(inputs), [out], name=out, **attrs))
+        inputs = [self._renamed.get(x, x) for x in inputs]
+        self.nodes.append(helper.make_node(op_type, inputs, [out], name=out, **attrs))
         return out
 
     # numpy-like helpers ---------------------------------------------------------------------
