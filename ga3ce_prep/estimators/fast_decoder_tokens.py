@@ -90,13 +90,17 @@ class _TokenGraph(DecoderGraph):
         """(B, P, 1) -> (B, 1, 1, P), to scale logits per image position."""
         return self.reshape(r, [0, 1, 1, P])
 
+    def column(self, x: str) -> str:
+        """Per-position values (B, 1, P) or (B, 1, 1, P) -> (B, P, 1), free."""
+        return self.reshape(x, [0, P, 1])
+
     def coldot(self, a: str, b: str) -> str:
         """(B, K, P) x (B, K, P) summed over K -> (B, P, 1): the row sums of a^T * b^T."""
-        return self.reshape(self.reduce_sum(self.mul(a, b), [1]), [0, P, 1])
+        return self.column(self.reduce_sum(self.mul(a, b), [1]))
 
     def headdot(self, a: str, b: str) -> str:
         """(B, H, T, P) x (B, H, T, P) summed over heads and tokens -> (B, P, 1)."""
-        return self.reshape(self.reduce_sum(self.mul(a, b), [1, 2]), [0, P, 1])
+        return self.column(self.reduce_sum(self.mul(a, b), [1, 2]))
 
     def inv_std(self, ssq: str) -> str:
         """(B, P, 1) sums of squares of centred rows -> 1 / sqrt(ssq / C + eps)."""
@@ -264,19 +268,15 @@ def _image_stream_stats(g: _TokenGraph, keys1: _Keys1, a1: str, vt1: str) -> _Ke
     n0s2 = g.mm(keys1.vt0h, img["Sy0T"])                                               # (B, H, T, P)
     m1s2 = g.mm(vt1h, img["Sy1T"])                                                     # (B, H, T, P)
     beta_row = g.const(d.beta.reshape(1, C))
-
-    def col(x: str) -> str:  # (B, 1, P) -> (B, P, 1), free
-        return g.reshape(x, [0, P, 1])
-
     # a0c @ n0 n0^T, a0c @ n0 m1^T and a0c @ n0 beta, transposed: (n0 n0^T) @ a0cT, (m1 n0^T) @ a0cT,
     # (beta^T n0^T) @ a0cT
     a0n0n0T = g.mm(g.mm_t(n0, n0), keys1.a0cT)                                         # (B, HT, P)
     a0n0m1T = g.mm(g.mm_t(m1, n0), keys1.a0cT)                                         # (B, HT, P)
-    a0n0b = col(g.mm(g.mm_t(beta_row, n0), keys1.a0cT))                                # (B, P, 1)
+    a0n0b = g.column(g.mm(g.mm_t(beta_row, n0), keys1.a0cT))                           # (B, P, 1)
     u0u0 = g.add(g.add(img["S2sq"], g.mul(g.const(2.0), g.headdot(keys1.a0, n0s2))), g.coldot(keys1.a0cT, a0n0n0T))
     u1u1_sq = g.add(g.coldot(a1cT, g.mm(g.mm_t(m1, m1), a1cT)), g.const(float(d.beta @ d.beta)))
     u0u1 = g.add(g.add(g.headdot(a1, m1s2), g.coldot(a1cT, a0n0m1T)), g.add(img["S2b"], a0n0b))
-    u1_cross = col(g.mm(g.mm_t(beta_row, m1), a1cT))                                   # (B, P, 1)
+    u1_cross = g.column(g.mm(g.mm_t(beta_row, m1), a1cT))                              # (B, P, 1)
     r1 = keys1.r1
     sq2 = g.add(g.add(g.mul(g.mul(r1, r1), u0u0), u1u1_sq), g.mul(g.const(2.0), g.add(g.mul(r1, u0u1), u1_cross)))
     return _Keys2(a1cT=a1cT, n0=n0, m1=m1, r2=g.inv_std(sq2))
