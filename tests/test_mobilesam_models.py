@@ -110,10 +110,12 @@ def test_generator_keeps_the_reference_candidates():
 
 def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     """The second transposed conv's bias rides in its matrix product (a ones column), so ONNX Runtime's
-    optimized mask graph has two plain Gelu nodes and no Add before a Gelu nor a BiasGelu (docs/models.md,
-    "Speed": the separate bias pass cost more than the concat)."""
+    optimized mask graph has two plain Gelu nodes per pixel slice (the CPU graph's slices) and no Add
+    before a Gelu nor a BiasGelu (docs/models.md, "Speed": the separate bias pass cost more than the
+    concat)."""
     import onnxruntime as ort
 
+    from ga3ce_prep.estimators.fast_decoder import FastDecoder
     from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
     from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
     from ga3ce_prep.estimators.onnx_runtime import session_options
@@ -121,13 +123,39 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     w = decoder_weights(DEC)
     so = session_options(1)
     so.optimized_model_filepath = str(tmp_path / "opt.onnx")
-    ort.InferenceSession(build_mask_graph(w, Derived.from_weights(w)).SerializeToString(), so,
+    chunks = FastDecoder.CPU_PIXEL_CHUNKS
+    ort.InferenceSession(build_mask_graph(w, Derived.from_weights(w), chunks).SerializeToString(), so,
                          providers=["CPUExecutionProvider"])
     nodes = onnx.load(so.optimized_model_filepath).graph.node
     made_by = {o: n.op_type for n in nodes for o in n.output}
     gelus = [n for n in nodes if n.op_type in ("Gelu", "BiasGelu")]
-    assert [n.op_type for n in gelus] == ["Gelu", "Gelu"]
+    assert chunks > 1 and [n.op_type for n in gelus] == ["Gelu", "Gelu"] * chunks
     assert all(made_by.get(n.input[0]) != "Add" for n in gelus)
+
+
+def test_mask_graph_in_pixel_slices_gives_the_whole_images_logits():
+    """The mask graph cut into pixel slices (the CPU graph) computes the same logits as the graph over
+    the whole image, for 1 and 3 prompts; a slice count that does not divide the 4096 pixels is refused."""
+    import onnxruntime as ort
+
+    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
+
+    dec = FastDecoder(DEC, CPU, 1)
+    dec.set_image(np.random.default_rng(3).standard_normal((1, 256, 64, 64)).astype(np.float32))
+    coords = np.array([[[100.0, 200.0], [0, 0]], [[900.0, 50.0], [0, 0]], [[512.0, 700.0], [0, 0]]], np.float32)
+    _, state = dec.predict_iou(coords, np.array([[1, -1]] * 3, np.float32))
+    w = decoder_weights(DEC)
+    whole = ort.InferenceSession(build_mask_graph(w, Derived.from_weights(w), 1).SerializeToString(),
+                                 providers=CPU)
+    for index in ([1], [0, 1, 2]):
+        ref = whole.run(["low_res_raw"], {**{k: v.numpy() for k, v in state.items()}, "SC": dec._img["SC"].numpy(),
+                                          "index": np.array(index, np.int64)})[0]
+        got = dec.low_res_raw(state, np.array(index))
+        assert got.shape == ref.shape == (len(index), 4096 * 16, 4) and np.abs(ref).max() > 0.01
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="divide 4096"):
+        build_mask_graph(w, Derived.from_weights(w), 3)
 
 
 def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attention(tmp_path):
@@ -144,7 +172,8 @@ def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attentio
 
     w = decoder_weights(DEC)
     d = Derived.from_weights(w)
-    for name, model in (("tokens", build_token_graph(w, d)), ("masks", build_mask_graph(w, d))):
+    for name, model in (("tokens", build_token_graph(w, d)), ("masks", build_mask_graph(w, d)),
+                        ("masks in 4 pixel slices", build_mask_graph(w, d, 4))):
         so = session_options(1)
         so.optimized_model_filepath = str(tmp_path / f"{name}.onnx")
         ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
@@ -158,9 +187,9 @@ def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attentio
         if name == "tokens":
             assert [0, 3, 1, 2] not in perms and [0, 2, 1] not in perms, perms
             assert len(fused) >= 8
-        else:   # the (K, 2HT + 2, P) left side, concatenated, is read through transA
-            assert not [n for n in transposes if made_by.get(n.input[0]) == "Concat"]
-            assert len(fused) == 1
+        else:   # the (K, 2HT + 2, P) left side, concatenated (and sliced), is read through transA
+            assert not [n for n in transposes if made_by.get(n.input[0]) in ("Concat", "Slice", "Split")]
+            assert len(fused) == (4 if "slices" in name else 1)
 
 
 def test_graph_builder_outputs_rename_their_producer():

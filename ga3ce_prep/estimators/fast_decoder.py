@@ -78,6 +78,9 @@ class FastDecoder:
     GPU_BATCH_SIZE = 64
     # Prompts per mask-graph call with I/O binding
     MASK_CHUNK = 64
+    # Slices of the embedding's pixels the mask graph runs one after the other on the CPU provider
+    # (build_mask_graph; measured in docs/models.md, "Speed"), 1 on others
+    CPU_PIXEL_CHUNKS = 16
     # Every token is decoded from the file's weights, a single-mask export's too: the generator's
     # candidates are the multimask outputs
     candidate_tokens = MULTIMASK_TOKENS
@@ -94,7 +97,8 @@ class FastDecoder:
                                      "fast decoder (image)")
         self._tokens = create_session(build_token_graph(w, d).SerializeToString(), providers, threads,
                                       "fast decoder (tokens)")
-        self._masks = create_session(build_mask_graph(w, d).SerializeToString(), providers, threads,
+        chunks = self.CPU_PIXEL_CHUNKS if providers[0] == "CPUExecutionProvider" else 1
+        self._masks = create_session(build_mask_graph(w, d, chunks).SerializeToString(), providers, threads,
                                      "fast decoder (masks)")
         self._img: dict[str, ort.OrtValue] | None = None
 

@@ -141,9 +141,16 @@ def build_image_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
     return g.model()
 
 
-def build_mask_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
+def build_mask_graph(w: dict[str, np.ndarray], d: Derived, pixel_chunks: int = 1) -> onnx.ModelProto:
     """SC + the token graph's STATE + prompt indices (K,) -> low_res_raw (K, 4096*16, 4) mask logits
-    (pixel order: raw_to_image)."""
+    (pixel order: raw_to_image).
+
+    pixel_chunks: the output upscaling and the hypernetwork product run on this many slices of the
+      4096 embedding pixels one after the other (every step of them is per pixel), so that each
+      slice's intermediates stay in the core's cache (on CPU, docs/models.md "Speed"); 1 = the whole
+      image in each node (GPU)."""
+    if P % pixel_chunks:
+        raise ValueError(f"pixel_chunks must divide {P}, got {pixel_chunks}")
     g = DecoderGraph("mobilesam_fast_masks", w, d)
     sc = g.input("SC", IMAGE_TENSORS["SC"])
     idx = g.input("index", ["K"], TensorProto.INT64)
@@ -165,23 +172,30 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived) -> onnx.ModelProto:
     k_dim = g.slice(g.op("Shape", rc0), [0], [1], [0])
     right = g.concat([rc0, rc1, g.op("Expand", g.const(np.stack([c_beta, c_const])[None]),
                                      g.concat([k_dim, g.const([2, C], dtype=np.int64)], axis=0))], axis=1)
-    y = g.add(g.mul(sc, r21), g.mm(g.transpose(leftT, [0, 2, 1]), right))             # (K, P, 256)
-    # The rest of output_upscaling: LayerNorm2d, GELU, the second transposed conv, GELU
-    y = g.reshape(y, [0, P, 4, 64])
-    y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))
-    # The second transposed conv with its bias as a 65th input row against a ones column: a concat
-    # of 1/64 of y costs less than an Add over the 2x larger output (docs/models.md, "Speed")
-    y_dims = g.slice(g.op("Shape", y), [0], [3], [0])
-    ones = g.op("Expand", g.const(np.ones((1, 1, 1, 1))), g.concat([y_dims, g.const([1], dtype=np.int64)], axis=0))
+    # The second transposed conv's matrix with its bias as a 65th input row against a ones column: a
+    # concat of 1/64 of y costs less than an Add over the 2x larger output (docs/models.md, "Speed")
     w2 = w["up3.w"].transpose(0, 2, 3, 1).reshape(64, 4 * 32)                         # cols (kh2, kw2, o2)
-    w2b = np.concatenate([w2, np.tile(w["up3.b"], 4)[None]], axis=0)                   # (65, 128)
-    z = g.reshape(g.gelu(g.mm(g.concat([y, ones], axis=-1), g.const(w2b))), [0, P * 4, 128])   # (K, 4P, 128)
+    w2b = g.const(np.concatenate([w2, np.tile(w["up3.b"], 4)[None]], axis=0))          # (65, 128)
     # The hypernetwork product with the mask tokens' MLP outputs, per output pixel (kh2, kw2) of the
     # second conv: z @ blockdiag(hyper_in^T x 4), an (128, 16) right side (a 4-column product wastes
     # most of each vector)
     hT = g.reshape(g.transpose(st["hyper_in"], [0, 2, 1]), [0, 1, 32, 1, 4])         # (K, 1, 32, 1, 4)
     hblock = g.reshape(g.mul(hT, g.const(np.eye(4).reshape(4, 1, 4, 1))), [0, 128, 16])   # (K, 128, 16)
-    g.output(g.reshape(g.mm(z, hblock), [0, P * 16, 4]), "low_res_raw")               # (K, P*16, 4)
+    n = P // pixel_chunks
+    outs = []
+    for p0 in range(0, P, n):   # the embedding pixels p0 .. p0 + n - 1
+        lt, sc_p, r21_p = (g.slice(leftT, [p0], [p0 + n], [2]), g.slice(sc, [p0], [p0 + n], [0]),
+                           g.slice(r21, [p0], [p0 + n], [1])) if pixel_chunks > 1 else (leftT, sc, r21)
+        y = g.add(g.mul(sc_p, r21_p), g.mm(g.transpose(lt, [0, 2, 1]), right))       # (K, n, 256)
+        # The rest of output_upscaling: LayerNorm2d, GELU, the second transposed conv, GELU
+        y = g.reshape(y, [0, n, 4, 64])
+        y = g.gelu(g.layer_norm(y, w["up1.g"], w["up1.b"], float(w["up1.eps"])))
+        y_dims = g.slice(g.op("Shape", y), [0], [3], [0])
+        ones_col = g.op("Expand", g.const(np.ones((1, 1, 1, 1))), g.concat([y_dims, g.const([1], dtype=np.int64)], axis=0))
+        z = g.reshape(g.gelu(g.mm(g.concat([y, ones_col], axis=-1), w2b)), [0, n * 4, 128])    # (K, 4n, 128)
+        outs.append(g.mm(z, hblock))                                                     # (K, 4n, 16)
+    out = outs[0] if len(outs) == 1 else g.concat(outs, axis=1)
+    g.output(g.reshape(out, [0, P * 16, 4]), "low_res_raw")                           # (K, P*16, 4)
     return g.model()
 
 
