@@ -123,7 +123,7 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     w = decoder_weights(DEC)
     so = session_options(1)
     so.optimized_model_filepath = str(tmp_path / "opt.onnx")
-    chunks = FastDecoder.CPU_PIXEL_CHUNKS
+    chunks = FastDecoder.CPU_MASK_PIXEL_CHUNKS
     ort.InferenceSession(build_mask_graph(w, Derived.from_weights(w), chunks).SerializeToString(), so,
                          providers=["CPUExecutionProvider"])
     nodes = onnx.load(so.optimized_model_filepath).graph.node
@@ -133,29 +133,40 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     assert all(made_by.get(n.input[0]) != "Add" for n in gelus)
 
 
-def test_mask_graph_in_pixel_slices_gives_the_whole_images_logits():
-    """The mask graph cut into pixel slices (the CPU graph) computes the same logits as the graph over
-    the whole image, for 1 and 3 prompts; a slice count that does not divide the 4096 pixels is refused."""
+def test_graphs_in_pixel_slices_give_the_whole_images_outputs():
+    """The token and mask graphs cut into pixel slices (the CPU graphs: the softmaxes over the pixels
+    streamed over the slices) compute what the graphs over the whole image compute, for 1 and 3
+    prompts; a slice count that does not divide the 4096 pixels is refused."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder_graphs import STATE, TOKEN_IMAGE_INPUTS, Derived, build_mask_graph
+    from ga3ce_prep.estimators.fast_decoder_tokens import build_token_graph
     from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
 
     dec = FastDecoder(DEC, CPU, 1)
+    assert dec.CPU_TOKEN_PIXEL_CHUNKS > 1 and dec.CPU_MASK_PIXEL_CHUNKS > 1
     dec.set_image(np.random.default_rng(3).standard_normal((1, 256, 64, 64)).astype(np.float32))
     coords = np.array([[[100.0, 200.0], [0, 0]], [[900.0, 50.0], [0, 0]], [[512.0, 700.0], [0, 0]]], np.float32)
-    _, state = dec.predict_iou(coords, np.array([[1, -1]] * 3, np.float32))
+    labels = np.array([[1, -1]] * 3, np.float32)
+    iou, state = dec.predict_iou(coords, labels)
     w = decoder_weights(DEC)
-    whole = ort.InferenceSession(build_mask_graph(w, Derived.from_weights(w), 1).SerializeToString(),
-                                 providers=CPU)
+    d = Derived.from_weights(w)
+    tokens = ort.InferenceSession(build_token_graph(w, d, 1).SerializeToString(), providers=CPU)
+    whole = tokens.run(["iou_predictions", *STATE], {**{k: dec._img[k].numpy() for k in TOKEN_IMAGE_INPUTS},
+                                                      "point_coords": coords, "point_labels": labels})
+    np.testing.assert_allclose(iou, whole[0], rtol=0, atol=2e-6)
+    for name, ref in zip(STATE, whole[1:]):
+        np.testing.assert_allclose(state[name].numpy(), ref, rtol=1e-5, atol=1e-6, err_msg=name)
+    masks = ort.InferenceSession(build_mask_graph(w, d, 1).SerializeToString(), providers=CPU)
     for index in ([1], [0, 1, 2]):
-        ref = whole.run(["low_res_raw"], {**{k: v.numpy() for k, v in state.items()}, "SC": dec._img["SC"].numpy(),
+        ref = masks.run(["low_res_raw"], {**{k: v.numpy() for k, v in state.items()}, "SC": dec._img["SC"].numpy(),
                                           "index": np.array(index, np.int64)})[0]
         got = dec.low_res_raw(state, np.array(index))
         assert got.shape == ref.shape == (len(index), 4096 * 16, 4) and np.abs(ref).max() > 0.01
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
-    with pytest.raises(ValueError, match="divide 4096"):
-        build_mask_graph(w, Derived.from_weights(w), 3)
+    for build in (build_token_graph, build_mask_graph):
+        with pytest.raises(ValueError, match="divide 4096"):
+            build(w, d, 3)
 
 
 def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attention(tmp_path):
@@ -172,8 +183,8 @@ def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attentio
 
     w = decoder_weights(DEC)
     d = Derived.from_weights(w)
-    for name, model in (("tokens", build_token_graph(w, d)), ("masks", build_mask_graph(w, d)),
-                        ("masks in 4 pixel slices", build_mask_graph(w, d, 4))):
+    for name, model in (("tokens", build_token_graph(w, d)), ("tokens in 4 pixel slices", build_token_graph(w, d, 4)),
+                        ("masks", build_mask_graph(w, d)), ("masks in 4 pixel slices", build_mask_graph(w, d, 4))):
         so = session_options(1)
         so.optimized_model_filepath = str(tmp_path / f"{name}.onnx")
         ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
@@ -184,7 +195,7 @@ def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attentio
         fused = [n for n in nodes if n.op_type == "FusedMatMul"
                  and any(a.name in ("transA", "transB") and a.i for a in n.attribute)]
         assert not [n for n in nodes if n.op_type == "Identity"], name
-        if name == "tokens":
+        if name.startswith("tokens"):
             assert [0, 3, 1, 2] not in perms and [0, 2, 1] not in perms, perms
             assert len(fused) >= 8
         else:   # the (K, 2HT + 2, P) left side, concatenated (and sliced), is read through transA
@@ -214,7 +225,7 @@ def test_graph_builder_outputs_rename_their_producer():
 
 
 def test_fast_decoder_batch_size_follows_the_provider():
-    assert FastDecoder(DEC, CPU, 1).batch_size == FastDecoder.CPU_BATCH_SIZE == 4
+    assert FastDecoder(DEC, CPU, 1).batch_size == FastDecoder.CPU_BATCH_SIZE == 8
 
 
 def test_both_decoders_are_mask_decoders():
@@ -241,7 +252,7 @@ def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
                            stability_score_offset=0.05, box_nms_thresh=1.0, io_binding="off")
     plain = MobileSamSegmenter(ENC, DEC, opt, verify=False)
     bound = MobileSamSegmenter(ENC, DEC, SegmenterOptions(**{**opt.to_dict(), "io_binding": "on"}), verify=False)
-    assert plain.decoder.batch_size == 4 and bound.decoder.batch_size is None and bound._pool is None
+    assert plain.decoder.batch_size == 8 and bound.decoder.batch_size is None and bound._pool is None
     calls = []
     monkeypatch.setattr(bound.decoder, "MASK_CHUNK", 7)
     predict = bound.decoder.predict_iou

@@ -72,15 +72,16 @@ class FastDecoder:
     io_binding: run through I/O binding on the first provider's device, all prompts of a crop in one
       batch (module docstring); `use_io_binding` decides it from the segmenter's options."""
 
-    # Prompts per token-graph call: 4 on CPU (measured per batch size in docs/models.md, "Speed"),
+    # Prompts per token-graph call: 8 on CPU (measured per batch size in docs/models.md, "Speed"),
     # GPU_BATCH_SIZE on other providers, None (all prompts of a crop) with I/O binding.
-    CPU_BATCH_SIZE = 4
+    CPU_BATCH_SIZE = 8
     GPU_BATCH_SIZE = 64
     # Prompts per mask-graph call with I/O binding
     MASK_CHUNK = 64
-    # Slices of the embedding's pixels the mask graph runs one after the other on the CPU provider
-    # (build_mask_graph; measured in docs/models.md, "Speed"), 1 on others
-    CPU_PIXEL_CHUNKS = 16
+    # Slices of the embedding's pixels the token and mask graphs run one after the other on the CPU
+    # provider (build_token_graph, build_mask_graph; measured in docs/models.md, "Speed"), 1 on others
+    CPU_TOKEN_PIXEL_CHUNKS = 8
+    CPU_MASK_PIXEL_CHUNKS = 32
     # Every token is decoded from the file's weights, a single-mask export's too: the generator's
     # candidates are the multimask outputs
     candidate_tokens = MULTIMASK_TOKENS
@@ -95,11 +96,11 @@ class FastDecoder:
             self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w, d).SerializeToString(), providers, threads,
                                      "fast decoder (image)")
-        self._tokens = create_session(build_token_graph(w, d).SerializeToString(), providers, threads,
-                                      "fast decoder (tokens)")
-        chunks = self.CPU_PIXEL_CHUNKS if providers[0] == "CPUExecutionProvider" else 1
-        self._masks = create_session(build_mask_graph(w, d, chunks).SerializeToString(), providers, threads,
-                                     "fast decoder (masks)")
+        on_cpu = providers[0] == "CPUExecutionProvider"
+        self._tokens = create_session(build_token_graph(w, d, self.CPU_TOKEN_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
+                                      providers, threads, "fast decoder (tokens)")
+        self._masks = create_session(build_mask_graph(w, d, self.CPU_MASK_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
+                                     providers, threads, "fast decoder (masks)")
         self._img: dict[str, ort.OrtValue] | None = None
 
     def _value(self, array: np.ndarray, dtype: type = np.float32) -> ort.OrtValue:
