@@ -367,7 +367,7 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
     options (AmgOptions), the ONNX Runtime settings (RuntimeParams) and the decoder mode."""
 
     decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster), multimask even from a single-mask export (its weights hold all 4 mask tokens); official: the exported decoder graph, one call per prompt (a single-mask export gives one mask per point)
-    io_binding: Literal["auto", "on", "off"] = "auto"  # fast decoder: all prompts of a crop in one batch through ONNX Runtime I/O binding, its state kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU (for testing; same masks); off: batches of 4 (CPU) or 64 prompts, outputs through host memory
+    io_binding: Literal["auto", "on", "off"] = "auto"  # fast decoder: all prompts of a crop in one batch through ONNX Runtime I/O binding, its state kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU (for testing; same masks); off: batches of 8 (CPU) or 64 prompts, outputs through host memory
 
 
 class MobileSamSegmenter:
