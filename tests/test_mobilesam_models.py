@@ -136,7 +136,8 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
 def test_graphs_in_pixel_slices_give_the_whole_images_outputs():
     """The token and mask graphs cut into pixel slices (the CPU graphs: the softmaxes over the pixels
     streamed over the slices) compute what the graphs over the whole image compute, for 1 and 3
-    prompts; a slice count that does not divide the 4096 pixels is refused."""
+    prompts, and so do mask-graph calls of at most 2 prompts; a slice count that does not divide the
+    4096 pixels is refused."""
     import onnxruntime as ort
 
     from ga3ce_prep.estimators.fast_decoder_graphs import STATE, TOKEN_IMAGE_INPUTS, Derived, build_mask_graph
@@ -164,6 +165,8 @@ def test_graphs_in_pixel_slices_give_the_whole_images_outputs():
         got = dec.low_res_raw(state, np.array(index))
         assert got.shape == ref.shape == (len(index), 4096 * 16, 4) and np.abs(ref).max() > 0.01
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+    dec.mask_batch = 2   # the prompts in mask-graph calls of at most 2
+    np.testing.assert_allclose(dec.low_res_raw(state, np.array([2, 0, 1])), ref[[2, 0, 1]], rtol=0, atol=1e-6)
     for build in (build_token_graph, build_mask_graph):
         with pytest.raises(ValueError, match="divide 4096"):
             build(w, d, 3)

@@ -78,6 +78,9 @@ class FastDecoder:
     GPU_BATCH_SIZE = 64
     # Prompts per mask-graph call with I/O binding
     MASK_CHUNK = 64
+    # Prompts per mask-graph call at most on the CPU provider (4: the 8 of a token batch in two calls
+    # keep the mask graph's slices in cache; docs/models.md, "Speed")
+    CPU_MASK_BATCH = 4
     # Slices of the embedding's pixels the token and mask graphs run one after the other on the CPU
     # provider (build_token_graph, build_mask_graph; measured in docs/models.md, "Speed"), 1 on others
     CPU_TOKEN_PIXEL_CHUNKS = 8
@@ -92,6 +95,7 @@ class FastDecoder:
         self.path = Path(decoder_path)
         self.io_binding = io_binding
         self.device = PROVIDER_DEVICE.get(providers[0], "cpu")   # where bound tensors live (device id 0)
+        self.mask_batch = self.CPU_MASK_BATCH if providers[0] == "CPUExecutionProvider" else None
         self.batch_size: int | None = None if io_binding else \
             self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w, d).SerializeToString(), providers, threads,
@@ -145,9 +149,10 @@ class FastDecoder:
 
     def low_res_raw(self, state: dict, index: np.ndarray) -> np.ndarray:
         """(K, 4096*16, 4) float32 mask logits of the prompts `index` of a predict_iou batch, in the
-        mask graph's pixel order (see raw_to_image); with I/O binding `MASK_CHUNK` prompts per call."""
+        mask graph's pixel order (see raw_to_image); `mask_batch` prompts per call at most on the CPU
+        provider (`CPU_MASK_BATCH`), `MASK_CHUNK` with I/O binding."""
         index = np.asarray(index, np.int64)
-        step = self.MASK_CHUNK if self.io_binding else max(1, len(index))
+        step = self.MASK_CHUNK if self.io_binding else self.mask_batch or max(1, len(index))
         parts = []
         for c0 in range(0, max(1, len(index)), step):   # one call for an empty index too
             feeds = {**state, "SC": self._img["SC"], "index": self._value(index[c0:c0 + step], np.int64)}
