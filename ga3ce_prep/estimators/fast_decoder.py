@@ -95,12 +95,11 @@ class FastDecoder:
         self.path = Path(decoder_path)
         self.io_binding = io_binding
         self.device = PROVIDER_DEVICE.get(providers[0], "cpu")   # where bound tensors live (device id 0)
-        self.mask_batch = self.CPU_MASK_BATCH if providers[0] == "CPUExecutionProvider" else None
-        self.batch_size: int | None = None if io_binding else \
-            self.CPU_BATCH_SIZE if providers[0] == "CPUExecutionProvider" else self.GPU_BATCH_SIZE
+        on_cpu = providers[0] == "CPUExecutionProvider"
+        self.mask_batch = self.CPU_MASK_BATCH if on_cpu else None
+        self.batch_size: int | None = None if io_binding else self.CPU_BATCH_SIZE if on_cpu else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w, d).SerializeToString(), providers, threads,
                                      "fast decoder (image)")
-        on_cpu = providers[0] == "CPUExecutionProvider"
         self._tokens = create_session(build_token_graph(w, d, self.CPU_TOKEN_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
                                       providers, threads, "fast decoder (tokens)")
         self._masks = create_session(build_mask_graph(w, d, self.CPU_MASK_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),

@@ -189,16 +189,9 @@ class _PixelSoftmax:
             return [g.div(x, s) for x in products]
         big = g.op("Max", *[m for m, _, _ in self.parts])
         scale = [g.op("Exp", g.sub(m, big)) for m, _, _ in self.parts]
-        total = _sum(g, [g.mul(k, s) for k, (_, s, _) in zip(scale, self.parts)])
-        return [g.div(_sum(g, [g.mul(k, part[2][j]) for k, part in zip(scale, self.parts)]), total)
+        total = g.op("Sum", *[g.mul(k, s) for k, (_, s, _) in zip(scale, self.parts)])
+        return [g.div(g.op("Sum", *[g.mul(k, part[2][j]) for k, part in zip(scale, self.parts)]), total)
                 for j in range(len(self.parts[0][2]))]
-
-
-def _sum(g: _TokenGraph, xs: list[str]) -> str:
-    out = xs[0]
-    for x in xs[1:]:
-        out = g.add(out, x)
-    return out
 
 
 @dataclass(frozen=True)
