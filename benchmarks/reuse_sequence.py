@@ -98,7 +98,8 @@ def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> 
     e_in_r = np.concatenate([within(e, r, AGREE_M) for e, r in zip(exact, reuse)])
     r_in_e = np.concatenate([within(r, e, AGREE_M) for e, r in zip(exact, reuse)])
     share = np.array([s.decoded_share for s in steps])
-    return {"frames": len(data), "exact_s": round(float(np.mean(exact_s)), 3), "reuse_s": round(float(np.mean(reuse_s)), 3),
+    return {"frames": len(data), "exact_s": round(float(np.mean(exact_s)), 3),
+            "reuse_s": round(float(np.mean(reuse_s)), 3),
             "speedup": round(float(np.sum(exact_s) / np.sum(reuse_s)), 2),
             "key_frames": [i for i, s in enumerate(steps) if s.key], "key_reasons": [s.reason for s in steps if s.key],
             "decoded_share_mean": round(float(share.mean()), 3),
@@ -121,7 +122,8 @@ def pooled(rows: list[dict]) -> dict:
 
     floor = {}
     if all("noise_objects" in r for r in rows):
-        floor = {"noise_objects": sum(r["noise_objects"] for r in rows), "noisy_objects": sum(r["noisy_objects"] for r in rows),
+        floor = {"noise_objects": sum(r["noise_objects"] for r in rows),
+                 "noisy_objects": sum(r["noisy_objects"] for r in rows),
                  "exact_with_noisy_within_2cm": pool("exact_with_noisy_within_2cm", "noise_objects"),
                  "noisy_with_exact_within_2cm": pool("noisy_with_exact_within_2cm", "noisy_objects")}
     reuse_frames = [(r["frames"] - len(r["key_frames"]), r["decoded_share_reuse_frames"]) for r in rows
@@ -129,10 +131,12 @@ def pooled(rows: list[dict]) -> dict:
     m = sum(k for k, _ in reuse_frames)
     return {"frames": int(n.sum()), "sequences": len(rows), "exact_s": round(float(exact.sum() / n.sum()), 3),
             "reuse_s": round(float(reuse.sum() / n.sum()), 3), "speedup": round(float(exact.sum() / reuse.sum()), 2),
-            "key_frames": [i for r in rows for i in r["key_frames"]], "key_reasons": [k for r in rows for k in r["key_reasons"]],
+            "key_frames": [i for r in rows for i in r["key_frames"]],
+            "key_reasons": [k for r in rows for k in r["key_reasons"]],
             "decoded_share_mean": round(float(sum(r["decoded_share_mean"] * r["frames"] for r in rows) / n.sum()), 3),
             "decoded_share_reuse_frames": round(sum(k * v for k, v in reuse_frames) / m, 3) if m else None,
-            "exact_objects": sum(r["exact_objects"] for r in rows), "reuse_objects": sum(r["reuse_objects"] for r in rows),
+            "exact_objects": sum(r["exact_objects"] for r in rows),
+            "reuse_objects": sum(r["reuse_objects"] for r in rows),
             "exact_with_reuse_within_2cm": pool("exact_with_reuse_within_2cm", "exact_objects"),
             "reuse_with_exact_within_2cm": pool("reuse_with_exact_within_2cm", "reuse_objects"), **floor}
 
@@ -146,7 +150,8 @@ def print_row(name: str, row: dict) -> None:
           f"| {row['speedup']:.1f}x | prompts decoded {_pct(row['decoded_share_mean'])} per frame "
           f"({_pct(row['decoded_share_reuse_frames'])} on reuse frames), key frames {row['key_frames']} "
           f"{row['key_reasons']} | agreement within 2 cm: exact->reuse {_pct(row['exact_with_reuse_within_2cm'])} "
-          f"of {row['exact_objects']}, reuse->exact {_pct(row['reuse_with_exact_within_2cm'])} of {row['reuse_objects']}"
+          f"of {row['exact_objects']}, reuse->exact {_pct(row['reuse_with_exact_within_2cm'])} "
+          f"of {row['reuse_objects']}"
           + (f" | exact vs exact re-noised (one frame in {NOISE_EVERY}): {_pct(row['exact_with_noisy_within_2cm'])} of "
              f"{row['noise_objects']} / {_pct(row['noisy_with_exact_within_2cm'])} of {row['noisy_objects']}"
              if "noise_objects" in row else ""), flush=True)

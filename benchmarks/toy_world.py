@@ -18,7 +18,8 @@ from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 @click.option("--seed", default=0, show_default=True, help="Generator seed.")
 @click.option("--frames-per-scene", default=40, show_default=True, help="Frames per scene (splits are by scene).")
 @click.option("--view-noise", default=20.0, show_default=True, help="Mean angular error of v, degrees.")
-@click.option("--view-head-pull", default=0.4, show_default=True, help="How far v's mean sits from the gaze toward the head direction (0-1).")
+@click.option("--view-head-pull", default=0.4, show_default=True,
+              help="How far v's mean sits from the gaze toward the head direction (0-1).")
 @click.option("--face-noise", default=0.03, show_default=True, help="Face keypoint noise, metres per axis.")
 @click.option("--p-object", default=0.8, show_default=True, help="Fraction of frames gazing at an object.")
 def main(frames, out, seed, frames_per_scene, view_noise, view_head_pull, face_noise, p_object):

@@ -20,8 +20,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "show": ("ga3ce_prep.store_cli:show", "Draw one frame's 3D context as a PNG, or write it as a PLY point set."),
     "export": ("ga3ce_prep.store_cli:export", "Export a store's arrays to HDF5 for other trainers."),
     "train": ("ga3ce_prep.train.cli:train", "Train the GA3CE 3D gaze transformer on a store."),
-    "eval": ("ga3ce_prep.train.cli:evaluate", "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
-    "ablate": ("ga3ce_prep.train.cli:ablate", "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
+    "eval": ("ga3ce_prep.train.cli:evaluate",
+             "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
+    "ablate": ("ga3ce_prep.train.cli:ablate",
+               "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
     "report": ("ga3ce_prep.train.cli:report",
                "One HTML page of a trained run: curves, error CDF, per-scene and ablation bars, the paper's figures."),
     "predict": ("ga3ce_prep.predict:predict",
@@ -51,7 +53,7 @@ class LazyGroup(click.Group):
         except (ModuleNotFoundError, AttributeError) as e:
             if isinstance(e, ModuleNotFoundError) and e.name and not module.startswith(e.name):
                 raise  # a real missing dependency: let it show
-            raise click.ClickException(f"command {name!r} is not available in this build ({target})")
+            raise click.ClickException(f"command {name!r} is not available in this build ({target})") from e
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         with formatter.section("Commands"):
@@ -92,7 +94,7 @@ def main() -> None:
             raise
         click.secho(f"error: {e}", fg="red", err=True)
         sys.exit(2)
-    except Exception as e:  # noqa: BLE001 - a bug: one line, the traceback on request
+    except Exception as e:  # a bug: one line, the traceback on request
         if os.environ.get("GA3CE_DEBUG"):
             raise
         click.secho(f"error: unexpected {type(e).__name__}: {e} (at {where_raised(e)}); a bug in ga3ce-prep: "

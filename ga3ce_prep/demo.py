@@ -88,8 +88,9 @@ def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, w
 
 
 if __name__ == "__main__":
-    from .cli import main
     import sys
+
+    from .cli import main
 
     sys.argv = ["ga3ce-prep", "demo", *sys.argv[1:]]
     main()

@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -246,7 +247,8 @@ def _box(value: str | None) -> tuple[float, ...] | None:
               help="Metres per depth unit (default: 0.001 for PNG, 1 for .npy).")
 @click.option("--intrinsics", "K", default=None, type=click.Path(dir_okay=False, exists=True),
               help='Camera intrinsics JSON: {"fx", "fy", "cx", "cy"} or {"K": 3x3}.')
-@click.option("--fov", default=DEFAULT_FOV, show_default=True, help="Horizontal field of view in degrees, when no --intrinsics.")
+@click.option("--fov", default=DEFAULT_FOV, show_default=True,
+              help="Horizontal field of view in degrees, when no --intrinsics.")
 @click.option("--checkpoint", "-c", default=None, type=click.Path(dir_okay=False, exists=True),
               help="A GA3CE checkpoint (best.pt) to predict the gaze g; without it only the 3D context and v.")
 @click.option("--pipeline", "-p", default=DEFAULT_PIPELINE, show_default=True,
@@ -254,7 +256,8 @@ def _box(value: str | None) -> tuple[float, ...] | None:
 @click.option("--set", "overrides", multiple=True, help="Override a pipeline setting (repeatable).")
 @click.option("--out", "-o", default="predict.png", show_default=True, type=click.Path(dir_okay=False),
               help="Drawing: the head box, v (blue), g (red), the objects and the pose joints.")
-@click.option("--ply", default=None, type=click.Path(dir_okay=False), help="Also write the 3D context as a PLY point set.")
+@click.option("--ply", default=None, type=click.Path(dir_okay=False),
+              help="Also write the 3D context as a PLY point set.")
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
 def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, overrides, out, ply,
             as_json) -> None:

@@ -233,7 +233,7 @@ def _open_root(path: str) -> tuple[zarr.Group, dict[str, Any]]:
         return root, dict(root.attrs)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError) as e:
         raise StoreError(f"no store at {path}: run `ga3ce-prep run ... --out {path}` first") from e
-    except Exception as e:  # noqa: BLE001 - whatever a damaged zarr.json makes zarr raise
+    except Exception as e:  # whatever a damaged zarr.json makes zarr raise
         raise StoreError(f"{path}: the root metadata zarr.json is damaged ({type(e).__name__}: {e}); "
                          f"{REBUILD}") from None
 
@@ -255,7 +255,7 @@ def _chunk_name(fs: Any, root: str, rel: str) -> str:
         n = int(meta["chunk_grid"]["configuration"]["chunk_shape"][0])
         first = int(index[0]) * n
         rows = f" (rows {first}-{min(first + n, int(meta['shape'][0])) - 1})"
-    except Exception:  # noqa: BLE001 - the array's metadata is damaged too: it is reported itself
+    except Exception:  # the array's metadata is damaged too: it is reported itself
         pass
     return f"array {array}, chunk ({', '.join(index)}{',' if len(index) == 1 else ''}){rows}"
 
@@ -405,7 +405,7 @@ def open_store(path: str | Path, verify: bool = False) -> ContextStore:
             if f"{st}_source" in groups["frames"]:
                 key = f"frames/{st}_source"
                 source_names[st] = list(root[key].attrs.get("names", []))
-    except Exception as e:  # noqa: BLE001 - whatever a damaged chunk or zarr.json makes zarr raise
+    except Exception as e:  # whatever a damaged chunk or zarr.json makes zarr raise
         raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
                         failures=groups["failures"], split_names=split_names, scene_names=scene_names,

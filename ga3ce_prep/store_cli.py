@@ -33,7 +33,8 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
     total = summ.get("frames_total", summ.get("frames_in_dataset", n))  # 1.0 stores: the old name
     lines.append(f"frames       {n} (of {total} in the dataset; {total - n} dropped)")
     split_counts = Counter(fr["split"].tolist())
-    lines.append("splits       " + ", ".join(f"{name} {split_counts.get(k, 0)}" for k, name in enumerate(s.split_names)))
+    lines.append("splits       "
+                 + ", ".join(f"{name} {split_counts.get(k, 0)}" for k, name in enumerate(s.split_names)))
     scene_counts = Counter(fr["scene"].tolist())
     shown = ", ".join(f"{s.scene_names[k]} {c}" for k, c in sorted(scene_counts.items())[:8])
     more = f", ... ({len(scene_counts)} scenes)" if len(scene_counts) > 8 else ""
@@ -60,7 +61,8 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
     for stage, p in a.get("stages", {}).items():
         params = ", ".join(f"{k}={v}" for k, v in (p.get("params") or {}).items())
         tag = "  [ORACLE: synthetic truth]" if p.get("oracle") else ""
-        models = "; models " + ", ".join(f"{k} {v[:12]}" for k, v in p.get("models", {}).items()) if p.get("models") else ""
+        models = ("; models " + ", ".join(f"{k} {v[:12]}" for k, v in p.get("models", {}).items())
+                  if p.get("models") else "")
         lines.append(f"  {stage:<8} {p.get('backend')}{tag}: {params}{models}")
     f = s.failures
     nf = len(f.get("frame_id", []))
@@ -85,7 +87,8 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
 @click.argument("store", type=click.Path())
 @click.option("--failures", "max_failures", type=int, default=8, show_default=True,
               help="How many failure messages to list.")
-@click.option("--json", "as_json", is_flag=True, help="Print the root attributes (provenance, summary) as JSON instead.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the root attributes (provenance, summary) as JSON instead.")
 @click.option("--verify", is_flag=True,
               help="First check every file against the store's integrity record (SHA-256); a damaged store is an "
                    "error naming each damaged array and chunk.")

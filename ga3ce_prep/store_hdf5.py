@@ -2,8 +2,9 @@
 
 Same names, shapes and dtypes as the Zarr store (docs/store.md): groups `frames/`, `objects/`,
 `failures/`; strings as UTF-8 variable-length strings; `frames/split`, `frames/scene` and the
-`frames/*_source` arrays carry their names in the attribute "names" (JSON list); the root attribute "attrs" holds the store's root
-attributes as JSON. Written to a temporary file and renamed into place.
+`frames/*_source` arrays carry their names in the attribute "names" (JSON list); the root attribute
+"attrs" holds the store's root attributes as JSON. Written to a temporary file and renamed into
+place.
 """
 from __future__ import annotations
 

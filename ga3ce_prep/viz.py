@@ -39,7 +39,8 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
     raise StoreError(f"frame {frame_id!r} is not in {store.path}{why}; e.g. {near or store.frames['id'][:3].tolist()}")
 
 
-def find_frame_refs(store: ContextStore, frame_ids: Iterable[str], data: str | Path | None = None) -> dict[str, FrameRef]:
+def find_frame_refs(store: ContextStore, frame_ids: Iterable[str],
+                    data: str | Path | None = None) -> dict[str, FrameRef]:
     """id -> the dataset's FrameRef for each of frame_ids the dataset has, re-opening the dataset
     the store was made from (`datasets.open_store_dataset`: its provenance, or the one at `data`);
     one pass over the adapter's frames, stopping once every id is found. Raises what opening the

@@ -95,7 +95,8 @@ def load_metrabs(model_dir: Path) -> tuple[torch.nn.Module, int, list[str]]:
     return MetrabsCrop(model, transform, np.asarray(skeleton["indices"])), side, [str(n) for n in skeleton["names"]]
 
 
-def load_nlf(model: Path, canonical: Path, names: Path, resolution: int | None) -> tuple[torch.nn.Module, int, list[str]]:
+def load_nlf(model: Path, canonical: Path, names: Path,
+             resolution: int | None) -> tuple[torch.nn.Module, int, list[str]]:
     """The wrapped crop model of NLF's multi-person TorchScript file (its `crop_model`), at your
     canonical points (J, 3) for the joints named in `names` (one per line)."""
     import torchvision  # noqa: F401 - registers the operators NLF's TorchScript file uses
@@ -117,15 +118,18 @@ def main(argv: list[str] | None = None) -> int:
     sub = ap.add_subparsers(dest="family", required=True)
     m = sub.add_parser("metrabs", help="MeTRAbs's PyTorch port (the 28-dataset models)", epilog=WEIGHTS,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    m.add_argument("--model-dir", type=Path, required=True, help="the unpacked model folder (config.yaml, ckpt.pt, ...)")
+    m.add_argument("--model-dir", type=Path, required=True,
+                   help="the unpacked model folder (config.yaml, ckpt.pt, ...)")
     n = sub.add_parser("nlf", help="NLF's multi-person TorchScript file (unverified route)", epilog=WEIGHTS,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     n.add_argument("--model", type=Path, required=True, help="nlf_*_multi_*.torchscript")
-    n.add_argument("--canonical-points", type=Path, required=True, help=".npy (J, 3): NLF's canonical points of the joints")
+    n.add_argument("--canonical-points", type=Path, required=True,
+                   help=".npy (J, 3): NLF's canonical points of the joints")
     n.add_argument("--joint-names", type=Path, required=True, help="text file: the J joint names, one per line")
     n.add_argument("--resolution", type=int, help="crop side S when the crop model does not say it")
     for p in (m, n):
-        p.add_argument("--out", type=Path, required=True, help="output stem: writes STEM.pt, STEM.onnx, STEM.joints.txt")
+        p.add_argument("--out", type=Path, required=True,
+                       help="output stem: writes STEM.pt, STEM.onnx, STEM.joints.txt")
         p.add_argument("--no-onnx", action="store_true", help="write the TorchScript file only")
     args = ap.parse_args(argv)
 

@@ -48,7 +48,7 @@ def load_gazenet(gafa: Path, checkpoint: Path, unsafe_load: bool = False) -> tor
     safe = "weights_only" in inspect.signature(torch.load).parameters and not unsafe_load
     try:
         state = torch.load(checkpoint, map_location="cpu", **({"weights_only": True} if safe else {}))
-    except Exception as e:  # noqa: BLE001 - torch raises its own unpickling errors
+    except Exception as e:  # torch raises its own unpickling errors
         sys.exit(f"cannot load {checkpoint} with weights_only=True ({e}); if you trust the file, rerun with "
                  "--unsafe-load")
     net = GazeNet(n_frames=WINDOW)

@@ -33,7 +33,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from ga3ce_prep.estimators.monodepth import PRESETS, MonoDepthEstimator, MonoDepthOptions, network_size  # noqa: E402
+from ga3ce_prep.estimators.monodepth import (  # noqa: E402
+    PRESETS,
+    MonoDepthEstimator,
+    MonoDepthOptions,
+    network_size,
+)
 
 # Depth-Anything-V2's model sizes, as its metric_depth README lists them (encoder -> constructor arguments)
 DA2_CONFIGS = {
@@ -94,7 +99,8 @@ def export(module, size: tuple[int, int], out: Path, opset: int = 17) -> Path:
 
     out.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter, on purpose: it traces both networks
+        # the TorchScript exporter, on purpose: it traces both networks
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(module, (torch.rand(1, 3, *size),), str(out), opset_version=opset, dynamo=False,
                           do_constant_folding=True, input_names=["image"], output_names=["depth"])
     return out
@@ -123,8 +129,10 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="network", required=True)
     zoe = sub.add_parser("zoedepth", help="isl-org/ZoeDepth (preset zoedepth)")
-    zoe.add_argument("--variant", choices=list(ZOE_VARIANTS), default="N", help="N: NYU (indoor), K: KITTI, NK: both heads")
-    da = sub.add_parser("depth-anything-v2-metric", help="Depth-Anything-V2 metric (presets depth-anything-v2-metric-*)")
+    zoe.add_argument("--variant", choices=list(ZOE_VARIANTS), default="N",
+                     help="N: NYU (indoor), K: KITTI, NK: both heads")
+    da = sub.add_parser("depth-anything-v2-metric",
+                        help="Depth-Anything-V2 metric (presets depth-anything-v2-metric-*)")
     da.add_argument("--repo", type=Path, required=True, help="the repository's metric_depth folder")
     da.add_argument("--encoder", choices=list(DA2_CONFIGS), default="vitl")
     da.add_argument("--max-depth", type=float, default=20.0, help="20 for the Hypersim (indoor) weights, 80 for VKITTI")

@@ -17,8 +17,8 @@ from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing import scripted
 
 OPTIONS = SegmenterOptions(points_per_side=16, decoder_mode="official", threads=1)
-# the scripted decoder's masks are exact and so is the truth depth: any sliver that moved counts; at 160x120 a cell of the
-# pooling encoder averages 2.5x2.5 pixels, whose sensor noise moves it by up to 0.2 of the mean norm
+# the scripted decoder's masks are exact and so is the truth depth: any sliver that moved counts; at 160x120 a cell of
+# the pooling encoder averages 2.5x2.5 pixels, whose sensor noise moves it by up to 0.2 of the mean norm
 PARAMS = ReuseParams(reuse="sequence", reuse_depth_change=1e-3, reuse_embedding_change=0.3)
 
 
@@ -105,8 +105,9 @@ def test_cells_of_maps_boxes_and_masks():
 
 @pytest.mark.parametrize("threshold", [0.96, 0.98])
 def test_candidates_near_a_threshold_are_decoded_on_every_frame(world, threshold):
-    # the scripted objects' best candidate predicts IoU 0.97: 0.01 above a 0.96 threshold (each wins NMS), 0.01 below
-    # 0.98 (each would win NMS if it passed); either way sensor noise could flip it, so its prompt is decoded every frame
+    # the scripted objects' best candidate predicts IoU 0.97: 0.01 above a 0.96 threshold (each wins NMS), 0.01
+    # below 0.98 (each would win NMS if it passed); either way sensor noise could flip it, so its prompt is decoded
+    # every frame
     seg, dec, seqs, truth = world
     base = seg.options
     reference = SequenceReuse(PARAMS)
@@ -121,7 +122,7 @@ def test_candidates_near_a_threshold_are_decoded_on_every_frame(world, threshold
     finally:
         seg.options = base
     assert np.array_equal(np.sort(reuse.key.near), np.sort(reference.key.won))
-    for i, (exact, r, calls) in enumerate(out):
+    for i, (exact, r, _calls) in enumerate(out):
         np.testing.assert_array_equal(r.masks, exact.masks)
         assert len(exact.masks) == (len(reference.key.won) if threshold < 0.97 else 0)
         if i:

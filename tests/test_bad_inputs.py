@@ -90,7 +90,8 @@ def _bomb(path: Path, side: int) -> None:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     ihdr = struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b""))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b""))
+                     + chunk(b"IEND", b""))
 
 
 def _truth_file(world: Path, out: Path, name: str, scale: float = 1.0, ids=None) -> Path:
@@ -246,7 +247,8 @@ def test_one_frames_faults_are_its_failure_records_and_the_others_are_intact(syn
     expect = {
         "valid/scene1/0001": ("depth", [f"depth {dep}: median depth", "(read as units m)", "read as cm (",
                                         "set the dataset's depth units (dataset.options) or re-export this file"]),
-        "train/scene1/0001": ("input", ["head box of frame train/scene1/0001 is inverted (x2", f"fix {ann}:{lines[1]}"]),
+        "train/scene1/0001": ("input", ["head box of frame train/scene1/0001 is inverted (x2",
+                                        f"fix {ann}:{lines[1]}"]),
         "train/scene1/0002": ("input", ["head box of frame train/scene1/0002 is empty (zero height",
                                         f"fix {ann}:{lines[2]}"]),
         "test/scene1/0000": ("input", ["test/scene1/0000.jpg: its header declares", "replace it"]),
@@ -279,7 +281,8 @@ def test_non_finite_poses_are_failure_records_not_stored_values(synth_world, tmp
     assert set(got) == {"train/scene1/0000", "train/scene1/0001"}
     assert got["train/scene1/0000"] == ("pose", "the pose backend returned no finite joint (90 of 90): not stored "
                                         "as a pose; a backend raises FrameError when it finds none", "degraded")
-    assert got["train/scene1/0001"][0] == "pose" and "has infinite values; write NaN for a joint" in got["train/scene1/0001"][1]
+    assert (got["train/scene1/0001"][0] == "pose"
+            and "has infinite values; write NaN for a joint" in got["train/scene1/0001"][1])
     i = list(s.frames["id"]).index("train/scene1/0002")
     assert np.isnan(s.frames["pose"][i, 4]).all() and np.isfinite(np.delete(s.frames["pose"][i], 4, 0)).all()
 
@@ -287,7 +290,10 @@ def test_non_finite_poses_are_failure_records_not_stored_values(synth_world, tmp
 def _folder(world: Path, root: Path) -> Path:
     """The world as a `folder` dataset (frames named <split>_<scene>_<frame>), with precomputed pose
     and view files keyed by those names."""
-    name = lambda fid: fid.replace("/", "_")  # noqa: E731
+
+    def name(fid):
+        return fid.replace("/", "_")
+
     (root / "rgb").mkdir(parents=True)
     (root / "depth").mkdir()
     fx, fy, cx, cy = np.load(world / "CameraKinect.npy")
@@ -333,7 +339,8 @@ def test_gafa_pickle_of_the_wrong_type_is_one_line(synth_gafa_world, tmp_path, g
 
 
 @pytest.mark.parametrize("option, fragments", [
-    ("units=km", ["dataset.options.units: 'km' is not one of auto, m, cm, mm", "fix it in the pipeline's dataset.options"]),
+    ("units=km", ["dataset.options.units: 'km' is not one of auto, m, cm, mm",
+                  "fix it in the pipeline's dataset.options"]),
     ("splits=train", ["dataset.options.splits: 'train' is not a list of train, valid, test"]),
     ("unit=mm", ["dataset.options.unit: the gfie adapter has no such option; its options: units, splits"]),
 ])

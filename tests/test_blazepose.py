@@ -22,7 +22,7 @@ from ga3ce_prep.frames import DepthMap, FrameRef
 from ga3ce_prep.geometry import project
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
 from ga3ce_prep.pipeline.tasks import task_stages
-from ga3ce_prep.skeleton import HEAD_JOINTS, J, N_JOINTS
+from ga3ce_prep.skeleton import HEAD_JOINTS, N_JOINTS, J
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store

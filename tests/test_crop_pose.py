@@ -13,8 +13,16 @@ import pytest
 import torch
 
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
-from ga3ce_prep.estimators.crop_pose import (CropPoseEstimator, CropPoseOptions, TorchScriptCropModel, body_box,
-                                             crop_to_camera, place_with_depth, read_joint_names, select_joints)
+from ga3ce_prep.estimators.crop_pose import (
+    CropPoseEstimator,
+    CropPoseOptions,
+    TorchScriptCropModel,
+    body_box,
+    crop_to_camera,
+    place_with_depth,
+    read_joint_names,
+    select_joints,
+)
 from ga3ce_prep.estimators.crop_pose_export import WithResolution, save_crop_model
 from ga3ce_prep.estimators.crops import look_at_crop, warp_homography
 from ga3ce_prep.frames import DepthMap, FrameRef
@@ -242,7 +250,8 @@ def test_a_model_with_the_wrong_input_shape_is_refused_naming_file_tensor_and_sh
     msg = str(e.value)
     assert str(ts) in msg and f"input image [1, {S}, {S}, 3] float32" in msg and "channels" in msg
     # a declared crop side other than the one asked for; the ONNX output with a joint count the list does not have
-    with pytest.raises(ModelFileError, match=rf"{tmp_path}.*'image' expected shape \[\?, 128, 128, 3\], found \[n, {S}, {S}, 3\]"):
+    with pytest.raises(ModelFileError,
+                       match=rf"{tmp_path}.*'image' expected shape \[\?, 128, 128, 3\], found \[n, {S}, {S}, 3\]"):
         backend("onnx", tmp_path, model=write_model(Probe(), tmp_path / "p", "onnx"), resolution=128).check()
     short = write_model(Constant(np.zeros((29, 3))), tmp_path / "short", "torchscript")
     with pytest.raises(ModelFileError, match=rf"{ts.parent}.*output poses3d has shape \[1, 29, 3\].*\[1, 30, 3\]"):
@@ -324,8 +333,8 @@ def test_pipeline_stores_what_the_model_says_in_metres_in_the_camera_frame(synth
     out = save_crop_model(Constant(joints), S, names, tmp_path / "models" / "tiny")
     index = [names.index(n) for n in JOINT_NAMES]
     for kind, model in (("onnx", out.onnx), ("torchscript", out.torchscript)):
-        overrides = [*SMALL, f"stages.pose.backend={kind}", "stages.pose.params={}", f"stages.pose.params.model={model}",
-                     "stages.pose.params.depth_refine=false", "run.shard_size=5"]
+        overrides = [*SMALL, f"stages.pose.backend={kind}", "stages.pose.params={}",
+                     f"stages.pose.params.model={model}", "stages.pose.params.depth_refine=false", "run.shard_size=5"]
         conf = load_pipeline("synthetic", synth_world, overrides=overrides, check_files=False)
         assert conf.upstream["pose"] == ("input", "depth")
         store = tmp_path / f"{kind}.zarr"
@@ -356,7 +365,8 @@ class FakeMetrabs(torch.nn.Module):
         image, intrinsics = inp
         ch = image.mean(dim=(2, 3))                                   # [N, 3]
         i = torch.arange(5, dtype=torch.float32)
-        return torch.stack([ch[:, [0, 1, 2, 0, 1]], intrinsics[:, :1, 0].expand(-1, 5), i.expand(image.shape[0], 5)], -1)
+        return torch.stack([ch[:, [0, 1, 2, 0, 1]], intrinsics[:, :1, 0].expand(-1, 5),
+                            i.expand(image.shape[0], 5)], -1)
 
 
 def test_export_script_help_and_its_metrabs_wrapper(tmp_path):
@@ -385,5 +395,6 @@ def test_a_pipeline_naming_a_bad_model_stops_before_any_work(synth_world, tmp_pa
     out = tmp_path / "s.zarr"
     with pytest.raises(ModelFileError, match=r"nchw.onnx: input 'image' expected shape \[\?, \?, \?, 3\]"):
         run_pipeline("synthetic", synth_world, out, progress=False,
-                     overrides=[*SMALL, "stages.pose.backend=onnx", "stages.pose.params={}", f"stages.pose.params.model={bad}"])
+                     overrides=[*SMALL, "stages.pose.backend=onnx", "stages.pose.params={}",
+                                f"stages.pose.params.model={bad}"])
     assert not out.exists() and not (tmp_path / "s.zarr.work").exists()

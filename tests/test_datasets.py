@@ -176,7 +176,8 @@ def _gafa(tmp_path, sessions=("library/1029_2", "kitchen/1015_4", "lab/1013_1", 
 
 
 def test_gafa_adapter_split_skip_and_vectors(tmp_path):
-    frames = list(open_dataset("gafa", _gafa(tmp_path).parent, val="sessions").frames())  # accepts the parent of raw_data
+    # accepts the parent of raw_data
+    frames = list(open_dataset("gafa", _gafa(tmp_path).parent, val="sessions").frames())
     ids = [f.id for f in frames]
     assert ids[:3] == ["library/1029_2/Camera1_0/000000", "library/1029_2/Camera1_0/000001",
                        "library/1029_2/Camera1_0/000003"]

@@ -16,8 +16,8 @@ from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
-from ga3ce_prep.synthetic.config import load_config
 from ga3ce_prep.synthetic import generate
+from ga3ce_prep.synthetic.config import load_config
 from ga3ce_prep.testing.worlds import SMALL, SMALL_WORLD
 from ga3ce_prep.train import TrainConfig, evaluate, format_eval_table, train
 from ga3ce_prep.train.ablate import BY_NAME, format_ablation_table
@@ -204,7 +204,8 @@ def test_gafa_adapter_marks_the_val_tail_and_keeps_the_sessions_option(gafa_stor
     world = gafa_store[0]
     frames = list(open_dataset("gafa", world).frames())
     train = [f for f in frames if f.split != "test"]
-    numbers = {s: np.array([f.index for f in train if f.sequence == s]) for s in dict.fromkeys(f.sequence for f in train)}
+    numbers = {s: np.array([f.index for f in train if f.sequence == s])
+               for s in dict.fromkeys(f.sequence for f in train)}
     starts = gafa_val_starts(numbers, seed=0)
     position = {f.id: int(np.searchsorted(numbers[f.sequence], f.index)) for f in train}
     assert [f.split for f in train] == ["val" if position[f.id] >= starts[f.sequence] else "train" for f in train]

@@ -8,8 +8,14 @@ import pytest
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, crop, invert_affine, roi_affine
-from ga3ce_prep.estimators.facemesh import (FaceDetection, FaceMeshEstimator, blazeface_anchors, face_roi,
-                                            facing_direction, head_direction)
+from ga3ce_prep.estimators.facemesh import (
+    FaceDetection,
+    FaceMeshEstimator,
+    blazeface_anchors,
+    face_roi,
+    facing_direction,
+    head_direction,
+)
 from ga3ce_prep.estimators.ssd import decode_regressors, ssd_anchors, weighted_nms
 from ga3ce_prep.geometry import back_project, look_at_rotation, normalize
 from ga3ce_prep.skeleton import J

@@ -13,8 +13,15 @@ from PIL import Image
 
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.errors import FrameError, ModelFileError
-from ga3ce_prep.estimators.gafa_view import (GafaViewEstimator, body_crop, body_velocity, head_masks,
-                                             normalize_crops, pre_blur, preprocessed_boxes)
+from ga3ce_prep.estimators.gafa_view import (
+    GafaViewEstimator,
+    body_crop,
+    body_velocity,
+    head_masks,
+    normalize_crops,
+    pre_blur,
+    preprocessed_boxes,
+)
 from ga3ce_prep.frames import frame_windows, load_rgb
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
@@ -177,8 +184,8 @@ def test_every_kept_frame_gets_the_models_gaze_for_its_window(model, synth_gafa_
 
 
 def test_a_frame_without_keypoints_or_window_fails_clearly(model, synth_gafa_world):
-    from ga3ce_prep.stages.view import GafaView
     from ga3ce_prep.stages.base import BackendContext
+    from ga3ce_prep.stages.view import GafaView
 
     frames = list(open_dataset("gafa", synth_gafa_world).frames())
     b = GafaView({"model": str(model)}, BackendContext(synth_gafa_world))

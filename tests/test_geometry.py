@@ -2,8 +2,15 @@ import numpy as np
 import pytest
 
 from ga3ce_prep.errors import FrameError
-from ga3ce_prep.geometry import (angular_error_deg, back_project, depth_to_points, head_position,
-                                 object_positions, project, scale_intrinsics)
+from ga3ce_prep.geometry import (
+    angular_error_deg,
+    back_project,
+    depth_to_points,
+    head_position,
+    object_positions,
+    project,
+    scale_intrinsics,
+)
 from ga3ce_prep.stages.head import DepthHead
 
 K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])

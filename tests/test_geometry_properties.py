@@ -5,14 +5,18 @@ at all for a translation with a turn about the camera's vertical axis (the cyclo
 fixes the roll against the camera's horizontal)."""
 import numpy as np
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from ga3ce_prep.geometry import back_project, object_positions, project
 from ga3ce_prep.model.egocentric import egocentric_transform
 
 SETTINGS = settings(max_examples=60, deadline=None, derandomize=True)  # the same examples in every run (CI)
-floats = lambda lo, hi: st.floats(lo, hi, allow_nan=False, allow_infinity=False)  # noqa: E731
+
+
+def floats(lo, hi):
+    return st.floats(lo, hi, allow_nan=False, allow_infinity=False)
 
 
 @st.composite
@@ -23,7 +27,8 @@ def intrinsics(draw) -> np.ndarray:
 
 
 @SETTINGS
-@given(K=intrinsics(), p=arrays(np.float64, (16, 3), elements=floats(-20, 20)), z=arrays(np.float64, 16, elements=floats(0.05, 50)))
+@given(K=intrinsics(), p=arrays(np.float64, (16, 3), elements=floats(-20, 20)),
+       z=arrays(np.float64, 16, elements=floats(0.05, 50)))
 def test_back_projection_inverts_projection(K, p, z):
     p[:, 2] = z
     uv = project(p, K)
@@ -41,7 +46,8 @@ def test_projection_inverts_back_projection(K, uv, z):
 def mask_scene(draw):
     """A small depth map (some unknown pixels), its sensor validity, a label image and K."""
     h, w = draw(st.integers(2, 12)), draw(st.integers(2, 12))
-    depth = draw(arrays(np.float32, (h, w), elements=st.sampled_from([0.0, 0.5, 1.25, 2.0, 3.5]) | floats(0.3, 9.0).map(np.float32)))
+    depth = draw(arrays(np.float32, (h, w),
+                        elements=st.sampled_from([0.0, 0.5, 1.25, 2.0, 3.5]) | floats(0.3, 9.0).map(np.float32)))
     valid = draw(arrays(bool, (h, w)))
     labels = draw(arrays(np.int32, (h, w), elements=st.integers(-1, 4)))
     return depth, valid, labels, draw(intrinsics()), draw(st.integers(1, 4))
@@ -100,7 +106,9 @@ def person_scene(draw):
 
 
 def _ego(pose, objects, head, view):
-    t = lambda a: torch.tensor(a[None], dtype=torch.float64)  # noqa: E731
+    def t(a):
+        return torch.tensor(a[None], dtype=torch.float64)
+
     return egocentric_transform(t(view / np.linalg.norm(view)), t(pose), t(objects), t(head))
 
 
@@ -131,5 +139,8 @@ def test_any_rigid_motion_changes_the_egocentric_context_by_a_roll_about_the_vie
     torch.testing.assert_close(pb[:, 2], pa[:, 2], rtol=1e-7, atol=1e-7)  # along the view: unchanged
     # across it: the same 2D configuration (every dot product), so one rotation about z maps a to b
     torch.testing.assert_close(pb[:, :2] @ pb[:, :2].T, pa[:, :2] @ pa[:, :2].T, rtol=1e-6, atol=1e-6)
-    cross = lambda p: p[:, None, 0] * p[None, :, 1] - p[:, None, 1] * p[None, :, 0]  # noqa: E731
+
+    def cross(p):
+        return p[:, None, 0] * p[None, :, 1] - p[:, None, 1] * p[None, :, 0]
+
     torch.testing.assert_close(cross(pb), cross(pa), rtol=1e-6, atol=1e-6)  # a rotation, not a reflection

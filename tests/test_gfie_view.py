@@ -174,7 +174,9 @@ def test_weights_only_admits_numpy_1_scalars_and_nothing_that_runs_code(tmp_path
         load_gfie_head(path)
     evil = tmp_path / "evil.pth.tar"
     torch.save({"state_dict": {}, "x": pickle.loads}, evil)
-    with pytest.raises(ModelFileError, match=r"cannot read GFIE checkpoint .*evil.pth.tar with weights_only=True .*: Unsupported global: GLOBAL pickle.loads was not an allowed global by default$"):
+    with pytest.raises(ModelFileError,
+                       match=r"cannot read GFIE checkpoint .*evil.pth.tar with weights_only=True .*: "
+                             r"Unsupported global: GLOBAL pickle.loads was not an allowed global by default$"):
         load_gfie_head(evil)
     torch.save({"model": {}}, evil)
     with pytest.raises(ModelFileError, match="is not a GFIE checkpoint: expected a dict with a 'state_dict'"):

@@ -12,8 +12,16 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.estimators.gfie_head import load_gfie_head
-from ga3ce_prep.estimators.gfie_net import (RECIPES, GFIENet, gaze_point_3d, head_location, load_gfie_net, matrix_t,
-                                            scene_input, stereo_fov)
+from ga3ce_prep.estimators.gfie_net import (
+    RECIPES,
+    GFIENet,
+    gaze_point_3d,
+    head_location,
+    load_gfie_net,
+    matrix_t,
+    scene_input,
+    stereo_fov,
+)
 from ga3ce_prep.estimators.head_crop import head_input
 from ga3ce_prep.frames import load_depth, load_rgb
 from ga3ce_prep.geometry import angular_error_deg, normalize
@@ -51,7 +59,8 @@ def test_gfie_net_has_gfies_key_names_and_shapes(net):
     assert sum(k.startswith("egd_module.") for k in sd) == 322
     assert sum(k.startswith("ggh_module.encoder.") for k in sd) == 318
     shapes = {"ggh_module.encoder.conv1.weight": (64, 6, 7, 7), "ggh_module.encoder.layer4.2.bn3.running_var": (2048,),
-              "ggh_module.decoder.compress_conv1.weight": (1024, 2048, 1, 1), "ggh_module.decoder.compress_bn2.bias": (512,),
+              "ggh_module.decoder.compress_conv1.weight": (1024, 2048, 1, 1),
+              "ggh_module.decoder.compress_bn2.bias": (512,),
               "ggh_module.decoder.deconv1.weight": (512, 256, 3, 3), "ggh_module.decoder.deconv2.bias": (128,),
               "ggh_module.decoder.deconv3.weight": (128, 1, 4, 4), "ggh_module.decoder.deconv_bn3.running_mean": (1,),
               "ggh_module.decoder.conv4.weight": (1, 1, 1, 1), "ggh_module.decoder.conv4.bias": (1,)}
@@ -115,7 +124,8 @@ def test_matrix_t_by_hand():
     # no depth: GFIE's T points from the eye to the camera; CAD-120's is 0
     eye = np.array([0.3, -0.2, 1.5])
     hole = np.zeros((224, 448), np.float32)
-    np.testing.assert_allclose(matrix_t(hole, (448, 224), K, eye, RECIPES["gfie"])[0, 100, 100], normalize(-eye), atol=1e-6)
+    np.testing.assert_allclose(matrix_t(hole, (448, 224), K, eye, RECIPES["gfie"])[0, 100, 100], normalize(-eye),
+                               atol=1e-6)
     np.testing.assert_array_equal(matrix_t(hole, (448, 224), K, eye, RECIPES["cad120"]), 0)
     assert (RECIPES["gfie"].resample, RECIPES["cad120"].resample) == ("bicubic", "nearest")
 
@@ -213,7 +223,8 @@ def test_auc_equals_sklearns_roc_auc_with_one_positive_pixel():
             gx, gy = rng.uniform(0, 1, 2)
             labels = np.zeros((H, W))
             labels[int(gy * H), int(gx * W)] = 1
-            assert heatmap_auc(heat, [gx, gy], size) == pytest.approx(_sklearn_auc(labels.ravel(), up.ravel()), abs=1e-12)
+            assert heatmap_auc(heat, [gx, gy], size) == pytest.approx(_sklearn_auc(labels.ravel(), up.ravel()),
+                                                                      abs=1e-12)
 
 
 def test_angle_as_gfie_computes_it():
@@ -253,8 +264,8 @@ def _by_hand(store, net, g, method):
         rgb, depth = load_rgb(f.image_path), load_depth(f.depth_path, f.depth_scale)
         H, W = rgb.shape[:2]
         eye = f.eye.astype(np.float64)
-        x = [torch.from_numpy(a) for a in (scene_input(rgb), head_input(rgb, f.head_box), head_location(f.head_box, (W, H)),
-                                           matrix_t(depth, (W, H), f.K, eye))]
+        x = [torch.from_numpy(a) for a in (scene_input(rgb), head_input(rgb, f.head_box),
+                                           head_location(f.head_box, (W, H)), matrix_t(depth, (W, H), f.K, eye))]
         with torch.inference_mode():
             heat, gv = net(*x, gaze=None if method == "gfie" else torch.from_numpy(g[k][None]))
         p = gaze_point_3d(depth, heat[0].numpy(), gv[0].numpy(), eye, f.K)

@@ -8,12 +8,12 @@ from ga3ce_prep.errors import FrameError
 from ga3ce_prep.frames import DepthMap, FrameRef
 from ga3ce_prep.geometry import back_project, head_position
 from ga3ce_prep.pipeline import run_pipeline
-from ga3ce_prep.skeleton import HEAD_JOINTS, J, N_JOINTS
+from ga3ce_prep.skeleton import HEAD_JOINTS, N_JOINTS, J
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.stages.head import DepthHead
 from ga3ce_prep.store import open_store
-from ga3ce_prep.synthetic.config import load_config
 from ga3ce_prep.synthetic import generate
+from ga3ce_prep.synthetic.config import load_config
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing.worlds import WORLD_640
 

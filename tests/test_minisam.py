@@ -10,8 +10,15 @@ from onnx import numpy_helper
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions,
-                                             exported_token, single_point_prompts, transform_coords)
+from ga3ce_prep.estimators.mobilesam import (
+    ImageEncoder,
+    MobileSamSegmenter,
+    OfficialDecoder,
+    SegmenterOptions,
+    exported_token,
+    single_point_prompts,
+    transform_coords,
+)
 from ga3ce_prep.registry_models import model_path
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
@@ -34,7 +41,10 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a, b = np.asarray(a, np.float64)[:, None], np.asarray(b, np.float64)[None]
     w = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]) + 1, 0, None)
     h = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]) + 1, 0, None)
-    area = lambda x: (x[..., 2] - x[..., 0] + 1) * (x[..., 3] - x[..., 1] + 1)  # noqa: E731
+
+    def area(x):
+        return (x[..., 2] - x[..., 0] + 1) * (x[..., 3] - x[..., 1] + 1)
+
     return w * h / (area(a) + area(b) - w * h)
 
 

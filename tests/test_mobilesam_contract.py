@@ -9,12 +9,19 @@ import onnx
 import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
-from ga3ce_prep.testing import scripted
-from ga3ce_prep.estimators.mobilesam import SegmenterOptions
-from ga3ce_prep.estimators.mobilesam import (ImageEncoder, MobileSamSegmenter, OfficialDecoder, mask_mode,
-                                             normalise_and_pad, resize_longest_side, transform_coords)
+from ga3ce_prep.estimators.mobilesam import (
+    ImageEncoder,
+    MobileSamSegmenter,
+    OfficialDecoder,
+    SegmenterOptions,
+    mask_mode,
+    normalise_and_pad,
+    resize_longest_side,
+    transform_coords,
+)
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
+from ga3ce_prep.testing import scripted
 
 CPU = ["CPUExecutionProvider"]   # the runners' providers and threads: (CPU, 1)
 
@@ -46,7 +53,8 @@ def files(tmp_path_factory):
 
 
 def test_encoder_contract_error_names_input_and_shapes(files):
-    with pytest.raises(ModelFileError, match=r"input 'image' expected shape \[1, 3, 1024, 1024\], found \[1, 3, 512, 512\]"):
+    with pytest.raises(ModelFileError,
+                       match=r"input 'image' expected shape \[1, 3, 1024, 1024\], found \[1, 3, 512, 512\]"):
         ImageEncoder(files["enc_bad"], CPU, 1)
     with pytest.raises(ModelFileError, match="not found"):
         ImageEncoder(files["enc"].with_name("missing.onnx"), CPU, 1)
@@ -55,7 +63,8 @@ def test_encoder_contract_error_names_input_and_shapes(files):
 def test_decoder_contract_errors(files):
     with pytest.raises(ModelFileError, match="no input named 'orig_im_size'"):
         OfficialDecoder(files["dec_no_size"], CPU, 1)
-    with pytest.raises(ModelFileError, match=r"input 'mask_input' expected shape \[1, 1, 256, 256\], found \[1, 1, 128, 128\]"):
+    with pytest.raises(ModelFileError,
+                       match=r"input 'mask_input' expected shape \[1, 1, 256, 256\], found \[1, 1, 128, 128\]"):
         OfficialDecoder(files["dec_bad_mask"], CPU, 1)
 
 
@@ -73,7 +82,8 @@ def test_tensors_are_found_by_role_when_names_differ(files, tmp_path):
     assert e.output_name == "output"
     np.testing.assert_array_equal(e.embed(rgb), ImageEncoder(files["enc"], CPU, 1).embed(rgb))
     new = {"image_embeddings": "embedding", "point_coords": "coords", "point_labels": "labels", "mask_input": "mask",
-           "has_mask_input": "has_mask", "orig_im_size": "size", "iou_predictions": "scores", "low_res_masks": "low_res"}
+           "has_mask_input": "has_mask", "orig_im_size": "size", "iou_predictions": "scores",
+           "low_res_masks": "low_res"}
     dec = tmp_path / "dec_renamed.onnx"
     onnx.save(scripted.renamed(onnx.load(files["dec"]), new), dec)
     d, ref = OfficialDecoder(dec, CPU, 1), OfficialDecoder(files["dec"], CPU, 1)
@@ -133,7 +143,8 @@ def test_preprocessing_by_hand():
     assert resized.shape == (768, 1024, 3) and (resized == rgb[0, 0]).all()
     x = normalise_and_pad(resized)
     assert x.shape == (1, 3, 1024, 1024)
-    np.testing.assert_allclose(x[0, :, 0, 0], [(200 - 123.675) / 58.395, (100 - 116.28) / 57.12, (50 - 103.53) / 57.375],
+    np.testing.assert_allclose(x[0, :, 0, 0],
+                               [(200 - 123.675) / 58.395, (100 - 116.28) / 57.12, (50 - 103.53) / 57.375],
                                rtol=1e-6)
     assert (x[0, :, 768:, :] == 0).all()          # zero padding at the bottom, after normalisation
 
@@ -151,7 +162,8 @@ def test_encoder_forms_agree_and_pool_the_normalised_image(files):
 def test_coordinates_through_the_resize_transform():
     pts = np.array([[640.0, 480.0], [320.0, 240.0]])
     np.testing.assert_allclose(transform_coords(pts, (480, 640)), [[1024, 768], [512, 384]])
-    np.testing.assert_allclose(transform_coords(np.array([[100.0, 700.0]]), (720, 405)), [[100 * 576 / 405, 700 * 1024 / 720]])
+    np.testing.assert_allclose(transform_coords(np.array([[100.0, 700.0]]), (720, 405)),
+                               [[100 * 576 / 405, 700 * 1024 / 720]])
 
 
 @pytest.mark.parametrize("dec", ["dec", "dec_batch"])
@@ -223,7 +235,8 @@ def test_export_command_help_and_clear_errors(tmp_path, monkeypatch):
     from ga3ce_prep.cli import cli
     res = CliRunner().invoke(cli, ["export-mobilesam", "--help"])
     assert res.exit_code == 0 and "--checkpoint" in res.output and "mobilesam-mirror" in res.output
-    res = CliRunner().invoke(cli, ["export-mobilesam", "--checkpoint", str(tmp_path / "nope.pt"), "--out", str(tmp_path)])
+    res = CliRunner().invoke(cli, ["export-mobilesam", "--checkpoint", str(tmp_path / "nope.pt"),
+                                   "--out", str(tmp_path)])
     assert res.exit_code != 0 and "nope.pt" in res.output
     ckpt = tmp_path / "mobile_sam.pt"
     ckpt.write_bytes(b"not used")

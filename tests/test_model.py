@@ -3,9 +3,18 @@ import numpy as np
 import pytest
 import torch
 
-from ga3ce_prep.model import (GA3CE, ModelConfig, angular_loss, axis_angle_rotation, cyclotorsion_rotation,
-                             d3_encoding, egocentric_transform, fourier_features, gaze_cone_bias,
-                             pose_normalization)
+from ga3ce_prep.model import (
+    GA3CE,
+    ModelConfig,
+    angular_loss,
+    axis_angle_rotation,
+    cyclotorsion_rotation,
+    d3_encoding,
+    egocentric_transform,
+    fourier_features,
+    gaze_cone_bias,
+    pose_normalization,
+)
 from ga3ce_prep.skeleton import GA3CE_JOINTS
 
 torch.set_num_threads(2)
@@ -86,7 +95,8 @@ def test_pose_normalisation_and_scale_invariance():
     np.testing.assert_allclose(a.view, torch.tensor([[0, 0, 1.0]]).expand(6, 3), atol=1e-12)
     # objects keep their distance from the head and their angle to v
     rel = objects.double() - head.double()[:, None]
-    np.testing.assert_allclose(torch.linalg.vector_norm(a.objects, dim=-1), torch.linalg.vector_norm(rel, dim=-1), atol=1e-9)
+    np.testing.assert_allclose(torch.linalg.vector_norm(a.objects, dim=-1), torch.linalg.vector_norm(rel, dim=-1),
+                               atol=1e-9)
     cos = torch.nn.functional.normalize(rel, dim=-1) @ view.double()[0]
     np.testing.assert_allclose(torch.nn.functional.normalize(a.objects[0], dim=-1)[:, 2], cos[0], atol=1e-9)
 
@@ -111,7 +121,8 @@ def test_encoding_widths():
     assert m.view_encoding(p[:, 0]).shape == (4, 106)
     assert m.pose_encoding(torch.randn(4, 15, 3)).shape == (4, 15, 10)
     assert m.object_encoding(p).shape == (4, 5, 256)
-    assert m.subject_embedding(torch.randn(4, 3), torch.randn(4, 15, 3), torch.ones(4, 15, dtype=torch.bool)).shape == (4, 256)
+    assert m.subject_embedding(torch.randn(4, 3), torch.randn(4, 15, 3),
+                               torch.ones(4, 15, dtype=torch.bool)).shape == (4, 256)
     s = GA3CE(ModelConfig(encoding="standard"))
     assert s.pose_encoding(torch.randn(4, 15, 3)).shape == (4, 15, 10)
     assert s.object_encoding(p).shape == (4, 5, 256)
@@ -121,7 +132,8 @@ def test_encoding_widths():
     torch.testing.assert_close(e1[..., :128], e2[..., :128])
     assert (e1[..., 128:] - e2[..., 128:]).abs().max() > 0.1
     x = torch.tensor([[0.25, 0.0, 0.0]])
-    torch.testing.assert_close(fourier_features(x, torch.tensor([[1.0, 0, 0]])), torch.tensor([[0.0, 1.0]]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(fourier_features(x, torch.tensor([[1.0, 0, 0]])), torch.tensor([[0.0, 1.0]]),
+                               atol=1e-6, rtol=0)
 
 
 @pytest.mark.parametrize("cfg", [ModelConfig(), ModelConfig(rotation="axis_angle", encoding="standard"),
@@ -243,7 +255,8 @@ def test_attention_hook_leaves_outputs_identical(cfg, grad):
     assert torch.equal(g, g_hooked) and torch.equal(g, g_after)       # bit-identical, and the hooks are gone
     S = 8 if cfg.use_objects and cfg.output == "regress" else 0   # the pointer's decoder sees the null token alone
     assert w.shape == (5, cfg.num_decoder_layers, cfg.n_heads, 1 + S)
-    torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[:-1]), atol=1e-6, rtol=0)   # sums to 1 over [null, objects]
+    # sums to 1 over [null, objects]
+    torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[:-1]), atol=1e-6, rtol=0)
     assert (w >= 0).all()
     if S:
         assert (w[..., 1:].permute(0, 3, 1, 2)[~mask] == 0).all()                          # padding gets nothing

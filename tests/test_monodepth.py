@@ -11,8 +11,16 @@ from PIL import Image
 
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
-from ga3ce_prep.estimators.monodepth import (IMAGENET_MEAN, IMAGENET_STD, PRESETS, MonoDepthEstimator, MonoDepthOptions,
-                                             Preset, network_size, resolve_options)
+from ga3ce_prep.estimators.monodepth import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    PRESETS,
+    MonoDepthEstimator,
+    MonoDepthOptions,
+    Preset,
+    network_size,
+    resolve_options,
+)
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.stages import backend_class
@@ -127,13 +135,15 @@ def test_output_by_name_or_index_and_interface_errors(tmp_path):
     np.testing.assert_allclose(_est(m).predict(img, K).depth, 7.0)
     np.testing.assert_allclose(_est(m, output_index=1).predict(img, K).depth, 2.0)
     np.testing.assert_allclose(_est(m, output_name="metric").predict(img, K).depth, 2.0)
-    with pytest.raises(ModelFileError, match=r"two.onnx: no output named 'depth'; the outputs are \['relative', 'metric'\]"):
+    with pytest.raises(ModelFileError,
+                       match=r"two.onnx: no output named 'depth'; the outputs are \['relative', 'metric'\]"):
         _est(m, output_name="depth")
     with pytest.raises(ModelFileError, match="output_index 2 but the file has 2 outputs"):
         _est(m, output_index=2)
     with pytest.raises(ModelFileError, match="2 inputs"):
         _est(linear_depth_model(tmp_path / "in2.onnx", {"d": (1, 0)}, n_inputs=2, size=(24, 32)))
-    with pytest.raises(ModelFileError, match=r"\[1, 24, 32, 3\] has 24 channels where layout nchw puts them; expected 3 \(set layout: nhwc"):
+    with pytest.raises(ModelFileError, match=r"\[1, 24, 32, 3\] has 24 channels where layout nchw puts them; "
+                                             r"expected 3 \(set layout: nhwc"):
         _est(linear_depth_model(tmp_path / "nhwc.onnx", {"d": (1, 0)}, layout="nhwc", size=(24, 32)))
     dyn = linear_depth_model(tmp_path / "dyn.onnx", {"d": (0, 2)})
     with pytest.raises(ModelFileError, match="no fixed height and width; set the depth backend's size"):
@@ -158,7 +168,8 @@ def _frame(tmp_path: Path, img: np.ndarray) -> FrameRef:
 def test_onnx_backend_resolves_its_preset(tmp_path):
     m = linear_depth_model(tmp_path / "m.onnx", {"depth": (1.0, 0.0)})           # dynamic size
     ctx = BackendContext(tmp_path)
-    b = backend_class("depth", "onnx")({"model": str(m), "preset": "depth-anything-v2-metric-indoor", "threads": 1}, ctx)
+    b = backend_class("depth", "onnx")({"model": str(m), "preset": "depth-anything-v2-metric-indoor", "threads": 1},
+                                       ctx)
     b.check()
     dm = b.depth(_frame(tmp_path, _rgb(48, 64, 153)))
     np.testing.assert_allclose(dm.depth, (0.6 - 0.485) / 0.229, rtol=1e-4)  # ImageNet mean/std on red
@@ -245,7 +256,8 @@ def test_precomputed_depth_hdf5_millimetres_and_units_checks(tmp_path, synth_wor
         b.depth(frames[ids[3]])
     wrong = backend_class("depth", "precomputed")({"file": str(tmp_path / "d.h5")}, ctx)  # units m
     with pytest.raises(ConfigError, match=r"d.h5: median depth \d+ m \(read as units m\) is outside the plausible "
-                                          r"0.1-100 m; read as .*mm \([\d.]+ m\).*: set stages.depth.params.units \(now m\)"):
+                                          r"0.1-100 m; read as .*mm \([\d.]+ m\).*: "
+                                          r"set stages.depth.params.units \(now m\)"):
         wrong.check()
     small = frames[ids[1]]
     small.image_size = (80, 60)
@@ -262,7 +274,8 @@ def test_export_script_writes_a_file_the_runner_reads(tmp_path):
 
     import torch
 
-    spec = importlib.util.spec_from_file_location("export_monodepth", Path(__file__).parents[1] / "scripts" / "export_monodepth.py")
+    spec = importlib.util.spec_from_file_location("export_monodepth",
+                                                  Path(__file__).parents[1] / "scripts" / "export_monodepth.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
 
@@ -277,7 +290,8 @@ def test_export_script_writes_a_file_the_runner_reads(tmp_path):
     assert check["input"] == [384, 512]
     assert check["max_abs_diff_m"] < 1e-6
     assert check["grey_median_m"] == pytest.approx(1.5 + 128 / 255, abs=1e-5)
-    b = backend_class("depth", "onnx")({"model": str(out), "preset": "zoedepth", "threads": 1}, BackendContext(tmp_path))
+    b = backend_class("depth", "onnx")({"model": str(out), "preset": "zoedepth", "threads": 1},
+                                       BackendContext(tmp_path))
     b.check()
     np.testing.assert_allclose(b.depth(_frame(tmp_path, _rgb(48, 64, 51))).depth, 1.7, rtol=1e-5)
     with pytest.raises(FrameError, match=r"needs a 384x672 \(HxW\) input .* --image-size 1920x1080"):

@@ -98,7 +98,8 @@ def test_missing_data_files_fail_before_any_work(tmp_path, synth_world):
     bad = tmp_path / "pose.npz"
     np.savez(bad, frame_id=np.array(["a"]), pose=np.zeros((1, 17, 3)))
     with pytest.raises(ConfigError, match=r"'pose' has shape \(1, 17, 3\)"):
-        load_pipeline(_base(), synth_world, overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(bad)}}})
+        load_pipeline(_base(), synth_world,
+                      overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(bad)}}})
 
 
 def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
@@ -109,7 +110,8 @@ def test_precomputed_pose_missing_frame_degrades_it(tmp_path, synth_world):
     ids = truth.frame_ids[1:]  # the first frame has no pose in the file
     np.savez(tmp_path / "pose.npz", frame_id=np.array(ids), pose=np.stack([truth.get(i, maps=False).pose for i in ids]))
     s = run_pipeline("synthetic-oracle", synth_world, tmp_path / "s.zarr", progress=False,
-                     overrides={"stages.pose": {"backend": "precomputed", "params": {"file": str(tmp_path / "pose.npz")}}})
+                     overrides={"stages.pose": {"backend": "precomputed",
+                                                "params": {"file": str(tmp_path / "pose.npz")}}})
     st = open_store(tmp_path / "s.zarr")
     i = int(np.flatnonzero(st.frames["id"] == truth.frame_ids[0])[0])
     assert s.counts.frames_kept == 12

@@ -364,13 +364,14 @@ def test_a_store_of_another_pipeline_or_dataset_is_refused_untouched_unless_over
 def test_two_runs_on_one_output_with_different_work_directories_the_second_is_refused(synth_world, tmp_path):
     out, work1 = tmp_path / "s.zarr", tmp_path / "work1"
     first = subprocess.Popen([sys.executable, "-c", "import sys; from ga3ce_prep.pipeline.lock import RunLock\n"
-                              f"with RunLock({str(work1)!r}, {str(out)!r}):\n print('held', flush=True); sys.stdin.read()"],
+                              f"with RunLock({str(work1)!r}, {str(out)!r}):\n"
+                              " print('held', flush=True); sys.stdin.read()"],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert first.stdout.readline().strip() == "held"
         with pytest.raises(StoreError, match=rf"another ga3ce-prep run is writing {re.escape(str(out))} \(pid "
-                                             rf"{first.pid} on .*, work directory {re.escape(str(work1))}, started .*\) "
-                                             rf"and holds {re.escape(str(out))}.lock"):
+                                             rf"{first.pid} on .*, work directory {re.escape(str(work1))}, "
+                                             rf"started .*\) and holds {re.escape(str(out))}.lock"):
             _run(synth_world, out, work_dir=tmp_path / "work2")
         assert not out.exists() and not (tmp_path / "work2" / "cache").exists()
     finally:

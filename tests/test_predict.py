@@ -111,7 +111,8 @@ def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
         np.save(rec / "depth" / f"{name}.npy", np.full(im.shape[:2], 1.6, np.float32))
     K = intrinsics((512, 512), fov=60)
     (rec / "intrinsics.json").write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
-    (rec / "heads.csv").write_text("name,x1,y1,x2,y2\na,150,15,300,190\n" + "b," + ",".join(f"{c:g}" for c in box) + "\n")
+    (rec / "heads.csv").write_text("name,x1,y1,x2,y2\na,150,15,300,190\n"
+                                   + "b," + ",".join(f"{c:g}" for c in box) + "\n")
     summary = run_pipeline("folder-real", rec, tmp_path / "s.zarr", progress=False)
     assert summary.counts.frames_kept == 2
     s = open_store(tmp_path / "s.zarr")

@@ -54,7 +54,8 @@ def test_figures_are_written(toy, tmp_path):
     np.testing.assert_allclose(fr.attention.sum(1) + fr.null, 1, atol=1e-5)     # the last layer's mean over heads
     assert (fr.attention[~fr.mask] == 0).all()
     # the appearance-only model has no attention: no attention figure, the rest is drawn
-    app = make_figures(build_model(load_checkpoint(toy[2] / "appearance" / "seed0" / "best.pt")), ds, tmp_path / "app", n=2)
+    app = make_figures(build_model(load_checkpoint(toy[2] / "appearance" / "seed0" / "best.pt")), ds, tmp_path / "app",
+                       n=2)
     assert set(app) == {"qualitative", "egocentric"}
 
 
@@ -116,8 +117,9 @@ def _rendered_images(page: Path, tmp_path: Path) -> tuple[int, int]:
     probe.write_text(page.read_text().replace("</body>", CHECK + "</body>"))
     profile = tempfile.mkdtemp(dir=tmp_path)
     res = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                          "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}",
-                          "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120)
+                          "--disable-component-update", "--disable-sync", "--no-first-run",
+                          f"--user-data-dir={profile}", "--dump-dom", probe.as_uri()],
+                         capture_output=True, text=True, timeout=120)
     found = re.search(r'<body[^>]*data-images="(\d+)/(\d+)"', res.stdout)
     assert found, f"chromium did not finish loading {probe} (rc {res.returncode}):\n{res.stderr[-2000:]}"
     return int(found[1]), int(found[2])

@@ -19,7 +19,8 @@ def _block(rng, n, start):
         "id": [f"f{start + i}" for i in range(n)], "split": rng.integers(0, 3, n),
         "scene": np.zeros(n), "K": np.tile(np.eye(3), (n, 1, 1)), "image_size": np.tile([640, 480], (n, 1)),
         "head_box": rng.random((n, 4)), "body_box": rng.random((n, 4)), "head_pos": rng.random((n, 3)),
-        "pose": rng.random((n, 30, 3)), "view": rng.random((n, 3)), "view_source": np.zeros(n, np.int8), "head_source": np.zeros(n, np.int8), "gaze": rng.random((n, 3)),
+        "pose": rng.random((n, 30, 3)), "view": rng.random((n, 3)), "view_source": np.zeros(n, np.int8),
+        "head_source": np.zeros(n, np.int8), "gaze": rng.random((n, 3)),
         "eye": rng.random((n, 3)), "gaze_target": rng.random((n, 3)), "obj_count": counts,
     }
     m = int(counts.sum())
@@ -108,7 +109,8 @@ DAMAGE = {
                     r"array frames/head_pos, chunk \(0, 0\) \(rows 0-19\): its bytes differ from the recorded SHA-256"),
     "truncated chunk": ("objects/xyz/c/0/0", lambda b: b[:9], r"array objects/xyz, chunk \(0, 0\) \(rows 0-\d+\): "
                         r"9 bytes instead of \d+ \(truncated\)"),
-    "damaged array metadata": ("frames/view/zarr.json", _flip, r"array frames/view, metadata \(frames/view/zarr.json\)"),
+    "damaged array metadata": ("frames/view/zarr.json", _flip,
+                               r"array frames/view, metadata \(frames/view/zarr.json\)"),
     "damaged root metadata": ("zarr.json", lambda b: b[:40], "the root metadata zarr.json is damaged"),
     "edited root attributes": ("zarr.json", _retitle, r"root attributes \(zarr.json\): differ from their recorded"),
 }
@@ -153,7 +155,8 @@ def test_a_truncated_chunk_or_root_metadata_is_one_error_line_without_verify(tmp
     assert p.returncode == 2
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), p.stderr
-    assert ("array objects/xyz, chunk (0, 0)" if rel != "zarr.json" else "root metadata zarr.json is damaged") in lines[0]
+    assert ("array objects/xyz, chunk (0, 0)" if rel != "zarr.json"
+            else "root metadata zarr.json is damaged") in lines[0]
 
 
 def test_a_store_without_an_integrity_record_cannot_be_verified(tmp_path):

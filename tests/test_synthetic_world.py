@@ -6,10 +6,10 @@ import open3d as o3d
 import pytest
 
 from ga3ce_prep.geometry import angular_error_deg, back_project, depth_to_points, project
+from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.camera import intrinsics
 from ga3ce_prep.synthetic.config import DepthConfig, load_config
 from ga3ce_prep.synthetic.noise import depth_sigma
-from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.room import build_room
 from ga3ce_prep.synthetic.stats import object_snap, world_statistics
 from ga3ce_prep.synthetic.truth import TruthReader

@@ -5,11 +5,11 @@ import json
 import pytest
 import torch
 from click.testing import CliRunner
-from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
 from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
@@ -63,9 +63,9 @@ def test_training_is_deterministic_and_resumes_exactly(store, tmp_path):
 @pytest.mark.parametrize("w", [0.0, 1.0, 2.5])
 def test_train_step_adds_the_first_pass_loss_with_its_weight(store, w):
     from ga3ce_prep.model import GA3CE, angular_loss
+    from ga3ce_prep.store import open_store
     from ga3ce_prep.train.dataset import ContextDataset
     from ga3ce_prep.train.trainer import train_step
-    from ga3ce_prep.store import open_store
     b = ContextDataset(open_store(store), "train").batch(list(range(16)))
     torch.manual_seed(0)
     model = GA3CE(ModelConfig(dropout=0.0, **SMALL))          # the pointer: [g0, g]
@@ -139,12 +139,14 @@ def test_evaluate_reports_model_and_baselines(store, tmp_path):
     r = evaluate(store, run / "best.pt", split="test", json_path=tmp_path / "e.json")
     m = r["methods"]
     assert set(m) == {"model", "view_prior", "head_from_pose", "snap_to_object"}
-    for name, res in m.items():
+    for res in m.values():
         assert res["n"] == r["n_frames"] == res["front"]["n"] + res["back"]["n"]
         assert sum(s["n"] for s in res["per_scene"].values()) == r["n_frames"]
         assert 0 < res["mae3d"] < 180
-    assert r["beats"] == {k: m["model"]["mae3d"] < m[k]["mae3d"] for k in ("view_prior", "head_from_pose", "snap_to_object")}
-    assert json.loads((tmp_path / "e.json").read_text())["methods"]["model"]["mae3d"] == pytest.approx(m["model"]["mae3d"])
+    assert r["beats"] == {k: m["model"]["mae3d"] < m[k]["mae3d"]
+                          for k in ("view_prior", "head_from_pose", "snap_to_object")}
+    assert (json.loads((tmp_path / "e.json").read_text())["methods"]["model"]["mae3d"]
+            == pytest.approx(m["model"]["mae3d"]))
     assert (run / "eval_test_cdf.png").stat().st_size > 1000
     table = format_eval_table(r)
     from ga3ce_prep.train.evaluate import METHODS
@@ -184,7 +186,8 @@ def test_ablate_table(store, tmp_path):
     assert ("objects add" if r["beats"]["no_objects"] else "objects cost") in table
     assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None)["methods"]
     assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None)["methods"]
-    res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none", "--no-scenes"])
+    res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none",
+                                   "--no-scenes"])
     assert res.exit_code == 0, res.output
     assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "GA3CE, no objects" in res.output
     # rerunning reuses the finished runs
@@ -196,9 +199,10 @@ def test_ablate_table(store, tmp_path):
 def test_cli_train_eval(store, tmp_path):
     runner = CliRunner()
     out = tmp_path / "cli"
-    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--epochs", "1", "--train-frames", "32",
-                              "--val-frames", "16", "--no-progress", "--ablation", "no-ga3ce", "--model-set", "cone_bias_scale=2",
-                              "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--epochs", "1",
+                              "--train-frames", "32", "--val-frames", "16", "--no-progress", "--ablation", "no-ga3ce",
+                              "--model-set", "cone_bias_scale=2", "--model-set", "num_encoder_layers=1",
+                              "--model-set", "num_decoder_layers=1"])
     assert res.exit_code == 0, res.output
     ck = load_checkpoint(out / "best.pt")
     assert ck["config"]["model"]["rotation"] == "none"
@@ -208,7 +212,8 @@ def test_cli_train_eval(store, tmp_path):
     assert res.exit_code == 0, res.output
     assert "GA3CE (model)" in res.output
     assert "head direction from pose" in res.output
-    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--ablation", "no-ga3ce", "--rotation", "axis_angle"])
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--ablation", "no-ga3ce",
+                              "--rotation", "axis_angle"])
     assert res.exit_code != 0
     assert "--ablation no-ga3ce" in res.output
     res = runner.invoke(cli, ["ablate", "--help"])
@@ -217,7 +222,8 @@ def test_cli_train_eval(store, tmp_path):
 
 
 def test_cli_recipe_options_are_the_config_fields():
-    from ga3ce_prep.train.cli import ablate as ablate_cmd, train as train_cmd
+    from ga3ce_prep.train.cli import ablate as ablate_cmd
+    from ga3ce_prep.train.cli import train as train_cmd
     d = TrainConfig()
     for cmd in (train_cmd, ablate_cmd):
         params = {p.name: p for p in cmd.params}

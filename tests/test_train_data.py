@@ -4,14 +4,14 @@ import functools
 import numpy as np
 import pytest
 import torch
-from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 
 from ga3ce_prep.geometry import angular_error_deg
 from ga3ce_prep.model import GA3CE
+from ga3ce_prep.skeleton import head_direction_from_pose
 from ga3ce_prep.store import StoreWriter, open_store
+from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 from ga3ce_prep.train import BucketBatchSampler, ContextDataset, DatasetProfile, collate, store_fingerprint
 from ga3ce_prep.train.augment import object_dropout, object_jitter, view_noise
-from ga3ce_prep.skeleton import head_direction_from_pose
 from ga3ce_prep.train.baselines import choose_snap_cone, snap_to_object
 from ga3ce_prep.train.metrics import angular_errors_2d, summarize
 from ga3ce_prep.train.schedule import warmup_cosine_lr

@@ -31,7 +31,10 @@ def test_window_rule_on_frame_numbers_with_gaps_and_ends():
     a = [0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 20]  # raw numbers: 8 and 16-19 missing
     frames = [_frame("A", i) for i in a] + [_frame("B", i) for i in (6, 4, 5, 3)] + [_frame("", 0), _frame("", 0)]
     w = dict(zip((f.id for f in frames[:len(a) + 4]), frame_windows(frames, 7)))
-    A = lambda *ns: [None if n is None else ("A", n) for n in ns]  # noqa: E731
+
+    def A(*ns):
+        return [None if n is None else ("A", n) for n in ns]
+
     # inside a run of 7: the 7 consecutive numbers; previous = the frame before the window
     assert _numbers(w["A/4"]) == A(1, 2, 3, 4, 5, 6, 7) and w["A/4"].complete
     assert w["A/4"].previous.index == 0

@@ -128,7 +128,8 @@ def read_csv_columns(path: Path, required: Sequence[str]) -> CsvTable:
                     rows.append(r)
                     lines.append(reader.line_num)
     except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise DatasetFormatError(f"cannot read annotation file {path}: {e}; it must be a UTF-8 CSV with a header") from e
+        raise DatasetFormatError(
+            f"cannot read annotation file {path}: {e}; it must be a UTF-8 CSV with a header") from e
     missing = [c for c in required if c not in header]
     if missing:
         raise DatasetFormatError(
@@ -205,15 +206,16 @@ def check_boxes(boxes: np.ndarray, table: CsvTable, columns: str, normalised: bo
         if reach > 1.5:
             raise DatasetFormatError(
                 f"{table.path}: the head boxes ({columns}) reach {reach:.4g} (median) where the image ends at 1: they "
-                "look like pixels; this format stores them normalised to [0, 1] (divide by the image's width and height)")
+                "look like pixels; this format stores them normalised to [0, 1] "
+                "(divide by the image's width and height)")
         return
     bad = [i for i in np.flatnonzero(finite) if box_fault(boxes[i])]
     if len(bad) > len(b) / 2:
         i = bad[0]
         raise DatasetFormatError(
-            f"{table.path}: {len(bad)} of {len(b)} head boxes ({columns}) are inverted or empty (line {table.lines[i]}: "
-            f"the box {box_fault(boxes[i])}); they must be {BOXES_XYXY}: if the file holds x, y, width, height, "
-            "convert it (x2 = x + width, y2 = y + height)")
+            f"{table.path}: {len(bad)} of {len(b)} head boxes ({columns}) are inverted or empty "
+            f"(line {table.lines[i]}: the box {box_fault(boxes[i])}); they must be {BOXES_XYXY}: "
+            "if the file holds x, y, width, height, convert it (x2 = x + width, y2 = y + height)")
     if np.abs(b).max() <= 1.5:
         raise DatasetFormatError(
             f"{table.path}: every head box ({columns}) lies within [0, 1.5]: they look normalised to [0, 1]; they must "

@@ -13,8 +13,18 @@ from pathlib import Path
 import numpy as np
 
 from ..frames import SPLITS, FrameRef
-from .base import (DatasetAdapter, check_boxes, check_depth_units, check_distances, check_rows, first_image_size,
-                   gaze_direction, intrinsics_from_fxfycxcy, one_of, read_csv_columns)
+from .base import (
+    DatasetAdapter,
+    check_boxes,
+    check_depth_units,
+    check_distances,
+    check_rows,
+    first_image_size,
+    gaze_direction,
+    intrinsics_from_fxfycxcy,
+    one_of,
+    read_csv_columns,
+)
 
 COLUMNS: tuple[str, ...] = (
     "dataset_id", "frame_index", "x_initial", "y_initial", "w", "h", "eye_x", "eye_y",

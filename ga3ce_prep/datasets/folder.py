@@ -25,8 +25,18 @@ import numpy as np
 from ..errors import DatasetFormatError
 from ..frames import SPLITS, FrameRef
 from ..units import units_name
-from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_depth_units, check_distances, check_intrinsics,
-                   check_option, check_rows, image_size, read_csv_columns)
+from .base import (
+    BOXES_XYXY,
+    DatasetAdapter,
+    check_boxes,
+    check_depth_units,
+    check_distances,
+    check_intrinsics,
+    check_option,
+    check_rows,
+    image_size,
+    read_csv_columns,
+)
 
 LAYOUT = "\n".join(line for line in __doc__.splitlines() if line.startswith("    "))
 REQUIRED = ("name", "x1", "y1", "x2", "y2")
@@ -72,7 +82,8 @@ class FolderAdapter(DatasetAdapter):
         check_boxes(boxes, t, ", ".join(REQUIRED[1:]))
         if "eye_Z" in f:
             check_distances(f["eye_Z"], f"{self.csv} eye_Z", "the columns eye_X..gaze_Z to metres", "eye distance")
-        self._rgb = {p.stem: p for p in sorted((self.root / "rgb").iterdir()) if p.suffix.lower() in (".jpg", ".jpeg", ".png")}
+        self._rgb = {p.stem: p for p in sorted((self.root / "rgb").iterdir())
+                     if p.suffix.lower() in (".jpg", ".jpeg", ".png")}
         depth_dir = self.root / "depth"
         self._depth = ({p.stem: p for p in sorted(depth_dir.iterdir()) if p.suffix.lower() in DEFAULT_DEPTH_SCALE}
                        if depth_dir.is_dir() else {})

@@ -31,8 +31,16 @@ from ..errors import DatasetFormatError
 from ..frames import FrameRef
 from ..geometry import normalize, project
 from ..skeleton import BODY25_HEAD
-from .base import (BOXES_XYXY, DatasetAdapter, check_distances, check_intrinsics, check_option, first_image_size,
-                   log, one_of)
+from .base import (
+    BOXES_XYXY,
+    DatasetAdapter,
+    check_distances,
+    check_intrinsics,
+    check_option,
+    first_image_size,
+    log,
+    one_of,
+)
 from .safe_pickle import load_pickle
 
 SCENES: tuple[str, ...] = ("library", "lab", "kitchen", "living_room", "courtyard")
@@ -126,11 +134,11 @@ def _keypoint_boxes(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarr
     return box
 
 
-def _expand(box: np.ndarray, t: float, b: float, l: float, r: float) -> np.ndarray:
+def _expand(box: np.ndarray, top: float, bottom: float, left: float, right: float) -> np.ndarray:
     """GAFA's ExpandBB on (N, 4) u, v, w, h: pads int(frac * w) left/right, int(frac * h) top/bottom."""
     u, v, w, h = box.T
-    pl, pr = np.trunc(l * w), np.trunc(r * w)
-    pt, pb = np.trunc(t * h), np.trunc(b * h)
+    pl, pr = np.trunc(left * w), np.trunc(right * w)
+    pt, pb = np.trunc(top * h), np.trunc(bottom * h)
     return np.stack([u - pl, v - pt, w + pl + pr, h + pt + pb], axis=1)
 
 
@@ -143,13 +151,13 @@ def _square(box: np.ndarray) -> np.ndarray:
 
 def head_boxes(kp: np.ndarray) -> np.ndarray:
     """(N, 4) x1, y1, x2, y2 head boxes from BODY_25 keypoints as GAFA's head_transform builds them."""
-    box = _square(_expand(_keypoint_boxes(kp, BODY25_HEAD), t=0.85, b=-0.2, l=0.1, r=0.1))
+    box = _square(_expand(_keypoint_boxes(kp, BODY25_HEAD), top=0.85, bottom=-0.2, left=0.1, right=0.1))
     return np.concatenate([box[:, :2], box[:, :2] + box[:, 2:]], axis=1)
 
 
 def body_boxes(kp: np.ndarray) -> np.ndarray:
     """(N, 4) x1, y1, x2, y2 body boxes as GAFA's body_transform builds them (square, then 3:4)."""
-    box = _square(_expand(_keypoint_boxes(kp, slice(None)), t=0.15, b=0.05, l=0.2, r=0.2))
+    box = _square(_expand(_keypoint_boxes(kp, slice(None)), top=0.15, bottom=0.05, left=0.2, right=0.2))
     u, v, side, _ = box.T
     w = np.trunc(side * 192 / 256)
     u = u + np.floor((side - w) / 2)
@@ -162,7 +170,8 @@ def _numeric(pkl: Path, field: str, value: object, shape: str) -> np.ndarray:
     try:
         a = np.asarray(value, np.float64)
     except (TypeError, ValueError) as e:
-        raise DatasetFormatError(f"{pkl}: {field} does not hold numbers ({e}); expected a float array {shape}") from None
+        raise DatasetFormatError(
+            f"{pkl}: {field} does not hold numbers ({e}); expected a float array {shape}") from None
     return a
 
 

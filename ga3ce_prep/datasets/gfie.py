@@ -17,9 +17,20 @@ import numpy as np
 from ..errors import DatasetFormatError
 from ..frames import FrameRef
 from ..units import LENGTH_UNITS, METRES_PER_UNIT
-from .base import (BOXES_XYXY, DatasetAdapter, check_boxes, check_option, check_rows, decide_units,
-                   first_depth_values, first_image_size, gaze_direction, intrinsics_from_fxfycxcy, one_of,
-                   read_csv_columns)
+from .base import (
+    BOXES_XYXY,
+    DatasetAdapter,
+    check_boxes,
+    check_option,
+    check_rows,
+    decide_units,
+    first_depth_values,
+    first_image_size,
+    gaze_direction,
+    intrinsics_from_fxfycxcy,
+    one_of,
+    read_csv_columns,
+)
 
 SPLIT_FOLDERS: dict[str, str] = {"train": "train", "valid": "val", "test": "test"}  # folder -> split
 # Columns the adapter reads (by name; other columns are ignored). Boxes and 2D points in pixels.
@@ -48,7 +59,9 @@ class GFIEAdapter(DatasetAdapter):
     def __init__(self, root: str | Path, units: str = "auto", splits: Sequence[str] = ("train", "valid", "test")):
         super().__init__(root)
         one_of("units", units, ("auto", *LENGTH_UNITS))
-        check_option("splits", splits, isinstance(splits, (list, tuple)) and all(isinstance(s, str) and s in SPLIT_FOLDERS for s in splits),
+        check_option("splits", splits,
+                     isinstance(splits, (list, tuple))
+                     and all(isinstance(s, str) and s in SPLIT_FOLDERS for s in splits),
                      f"a list of {', '.join(SPLIT_FOLDERS)}")
         self.K = intrinsics_from_fxfycxcy(self.require("CameraKinect.npy", "camera intrinsics"))
         self.require("rgb", "RGB frames")
@@ -71,7 +84,8 @@ class GFIEAdapter(DatasetAdapter):
         depth_units = (decide_units(depth[0], units, f"GFIE depth {depth[1]} (and the next maps)", fix, "depth")
                        if depth is not None else "m" if units == "auto" else units)
         eye_z = np.concatenate([f["eye_Z"] for f in self._values.values()])
-        xyz_units = (decide_units(np.abs(eye_z), units, f"GFIE eye_Z in {', '.join(map(str, self.annotations.values()))}",
+        xyz_units = (decide_units(np.abs(eye_z), units,
+                                  f"GFIE eye_Z in {', '.join(map(str, self.annotations.values()))}",
                                   fix, "eye distance")
                      if np.isfinite(eye_z).any() else "m" if units == "auto" else units)
         self.units = {"depth": depth_units, "eye_gaze_xyz": xyz_units, "boxes": BOXES_XYXY,

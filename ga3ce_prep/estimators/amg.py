@@ -25,7 +25,10 @@ class AmgOptions:
     """segment-anything's generator options, with its defaults (the MobileSAM app uses them all)."""
 
     points_per_side: int = param(32, minimum=1)  # grid of single-point prompts per side (32 = 1024 prompts)
-    points_per_batch: int = param(64, minimum=1)  # prompts per official-decoder call (decoder_mode official); the fast decoder batches its own way; results do not depend on it
+    points_per_batch: int = param(
+        # prompts per official-decoder call (decoder_mode official); the
+        # fast decoder batches its own way; results do not depend on it
+        64, minimum=1)
     pred_iou_thresh: float = 0.88  # keep masks whose predicted IoU exceeds this (0 = no filter)
     stability_score_thresh: float = 0.95  # keep masks whose stability score reaches this (0 = no filter)
     stability_score_offset: float = 1.0  # logit offset of the stability score
@@ -34,7 +37,8 @@ class AmgOptions:
     crop_nms_thresh: float = param(0.7, minimum=0, maximum=1)  # box NMS threshold across crops
     crop_overlap_ratio: float = 512 / 1500  # crop overlap as a fraction of the short side
     crop_n_points_downscale_factor: int = param(1, minimum=1)  # points per side divided by this per crop layer
-    min_mask_region_area: int = param(0, minimum=0)  # fill holes and drop islands smaller than this many pixels (0 = off)
+    min_mask_region_area: int = param(
+        0, minimum=0)  # fill holes and drop islands smaller than this many pixels (0 = off)
 
     def __post_init__(self):
         if self.points_per_side < 1 or self.points_per_batch < 1:
@@ -57,7 +61,8 @@ class AmgOptions:
         return iou > np.float32(self.pred_iou_thresh - margin)
 
     def stability_passes(self, stability: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """(n,) bool: stability scores (n,) float32 at least stability_score_thresh - margin (all with the filter off)."""
+        """(n,) bool: stability scores (n,) float32 at least stability_score_thresh - margin (all with
+        the filter off)."""
         if self.stability_score_thresh <= 0:
             return np.ones(np.shape(stability), bool)
         return stability >= np.float32(self.stability_score_thresh - margin)

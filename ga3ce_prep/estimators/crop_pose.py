@@ -19,9 +19,10 @@ generations, so a name the list lacks is refused, naming it.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol, Sequence
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
@@ -42,18 +43,53 @@ ORT_TYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "uint8": 
 class CropPoseOptions:
     """The crop contract's parameters, MeTRAbs's values as defaults (both pose backends)."""
 
-    joints: Path | None = param(None, file="model", hint="scripts/export_crop_pose.py writes it beside the model: one joint name per line, in the model's output order")  # the model's joint-name list, one name per line in its output order; null: <model stem>.joints.txt beside the model
-    resolution: int | None = param(None, minimum=1)  # crop side S, pixels; null: from the model (the ONNX image input's fixed side, or the TorchScript module's `input_resolution`, which scripts/export_crop_pose.py writes)
-    input_dtype: Literal["float32", "float16", "uint8"] = "float32"  # the image tensor's dtype (MeTRAbs's PyTorch crop model: float32; its TF SavedModel takes float16)
-    value_range: tuple[float, ...] = param((0.0, 1.0), minItems=2, maxItems=2)  # what black and white become in the image tensor (MeTRAbs: [0, 1]; the model maps it to [-1, 1] itself); uint8 input: (0, 255)
-    gamma: float = param(2.2, exclusiveMinimum=0)  # the warp interpolates in linear light: pixels are decoded as (v / 255)^gamma before it (MeTRAbs: 2.2); 1: plain sRGB interpolation
-    gamma_aug: float = param(0.8, exclusiveMinimum=0)  # the crop is encoded back as linear^(gamma_aug / gamma): MeTRAbs's single-augmentation value (its test-time gammas 0.6..1.0, linspace with one sample gives their mean 0.8); 1: exactly undo the decoding
-    box_scale: float = param(1.0, exclusiveMinimum=0)  # the crop spans box_scale x the body box's larger (perspective-corrected) side; MeTRAbs crops the detector's box as it is (1)
-    head_box_width: float = param(3.0, exclusiveMinimum=0)  # no finite body box: the width of the box grown from the head box, in head-box sides (its larger side), centred on it
-    head_box_above: float = param(0.25, minimum=0)  # no finite body box: head-box sides the grown box reaches above the head box's top
-    head_box_below: float = param(6.5, minimum=0)  # no finite body box: head-box sides the grown box reaches below the head box's bottom (an upright adult is about 7.5 heads tall; a seated one leaves floor in the crop)
-    joint_depth_offset: float = param(0.05, minimum=0)  # depth_refine: metres a body joint lies behind the surface the depth map measures (the 6 face joints lie on it)
-    depth_refine: bool = True  # take the pose's distance from the depth stage's map at its joints (placement.refine_with_depth, as pose/blazepose): a monocular pose's distance is off by its size error times the distance; false: the model's distance (the map is still passed)
+    joints: Path | None = param(
+        # the model's joint-name list, one name per line in its output
+        # order; null: <model stem>.joints.txt beside the model
+        None, file="model",
+        hint="scripts/export_crop_pose.py writes it beside the model: "
+             "one joint name per line, in the model's output order")
+    resolution: int | None = param(
+        # crop side S, pixels; null: from the model (the ONNX image input's fixed side, or the
+        # TorchScript module's `input_resolution`, which scripts/export_crop_pose.py writes)
+        None, minimum=1)
+    input_dtype: Literal["float32", "float16", "uint8"] = (
+        # the image tensor's dtype (MeTRAbs's PyTorch crop model: float32; its TF SavedModel takes float16)
+        "float32")
+    value_range: tuple[float, ...] = param(
+        # what black and white become in the image tensor (MeTRAbs: [0, 1];
+        # the model maps it to [-1, 1] itself); uint8 input: (0, 255)
+        (0.0, 1.0), minItems=2, maxItems=2)
+    gamma: float = param(
+        # the warp interpolates in linear light: pixels are decoded as
+        # (v / 255)^gamma before it (MeTRAbs: 2.2); 1: plain sRGB interpolation
+        2.2, exclusiveMinimum=0)
+    gamma_aug: float = param(
+        # the crop is encoded back as linear^(gamma_aug / gamma): MeTRAbs's single-augmentation value (its
+        # test-time gammas 0.6..1.0, linspace with one sample gives their mean 0.8); 1: exactly undo the decoding
+        0.8, exclusiveMinimum=0)
+    box_scale: float = param(
+        # the crop spans box_scale x the body box's larger (perspective-corrected)
+        # side; MeTRAbs crops the detector's box as it is (1)
+        1.0, exclusiveMinimum=0)
+    head_box_width: float = param(
+        # no finite body box: the width of the box grown from the head
+        # box, in head-box sides (its larger side), centred on it
+        3.0, exclusiveMinimum=0)
+    head_box_above: float = param(
+        0.25, minimum=0)  # no finite body box: head-box sides the grown box reaches above the head box's top
+    head_box_below: float = param(
+        # no finite body box: head-box sides the grown box reaches below the head box's bottom
+        # (an upright adult is about 7.5 heads tall; a seated one leaves floor in the crop)
+        6.5, minimum=0)
+    joint_depth_offset: float = param(
+        # depth_refine: metres a body joint lies behind the surface the depth map measures (the 6 face joints lie on it)
+        0.05, minimum=0)
+    depth_refine: bool = (
+        # take the pose's distance from the depth stage's map at its joints
+        # (placement.refine_with_depth, as pose/blazepose): a monocular pose's distance is off by
+        # its size error times the distance; false: the model's distance (the map is still passed)
+        True)
 
 
 class CropModel(Protocol):
@@ -91,7 +127,8 @@ def select_joints(names: Sequence[str], where: str, wanted: Sequence[str] = JOIN
     pos = {n: i for i, n in enumerate(names)}
     missing = [n for n in wanted if n not in pos]
     if missing:
-        raise ModelFileError(f"{where}: no joint named {missing[0]!r}" + (f" (nor {missing[1:]})" if missing[1:] else "")
+        raise ModelFileError(f"{where}: no joint named {missing[0]!r}"
+                             + (f" (nor {missing[1:]})" if missing[1:] else "")
                              + f" among its {len(names)} names; smpl+head_30 needs the {len(wanted)} names of "
                              "skeleton.JOINT_NAMES (a model that spells one otherwise: rename it in the list)")
     return np.array([pos[n] for n in wanted], np.int64)
@@ -126,7 +163,8 @@ def decode_lut(gamma: float) -> np.ndarray:
 class CropPoseEstimator:
     """One person's smpl+head_30 pose from a crop model (`CropModel`) and its joint names."""
 
-    def __init__(self, model: CropModel, names: Sequence[str], options: CropPoseOptions, names_file: Path | None = None):
+    def __init__(self, model: CropModel, names: Sequence[str], options: CropPoseOptions,
+                 names_file: Path | None = None):
         """names: the model's J joint names in its output order (from `names_file`, for messages)."""
         self.model, self.o = model, options
         self.n_model_joints = len(names)
@@ -170,10 +208,11 @@ class CropPoseEstimator:
             self.raw(image, K)
         except ModelFileError:
             raise
-        except Exception as e:  # noqa: BLE001 - the runtimes raise their own types
+        except Exception as e:  # the runtimes raise their own types
             lines = [line.strip() for line in str(e).splitlines() if line.strip()]  # TorchScript: the cause comes last
             raise ModelFileError(f"{self.model.where}: refused the input image [1, {S}, {S}, 3] {self.o.input_dtype} "
-                                 f"with intrinsics [1, 3, 3] float32: {lines[-1] if lines else type(e).__name__}") from e
+                                 "with intrinsics [1, 3, 3] float32: "
+                                 f"{lines[-1] if lines else type(e).__name__}") from e
 
 
 def place_with_depth(pose: np.ndarray, K: np.ndarray, depth: np.ndarray, valid: np.ndarray | None,
@@ -231,7 +270,7 @@ class TorchScriptCropModel:
             with warnings.catch_warnings():
                 warnings.filterwarnings(**TORCHSCRIPT_DEPRECATED)
                 self.module = torch.jit.load(str(path), map_location=device).eval()
-        except Exception as e:  # noqa: BLE001 - torch raises RuntimeError and others
+        except Exception as e:  # torch raises RuntimeError and others
             raise ModelFileError(f"cannot load {self.where}: {e}") from e
         S = resolution or getattr(self.module, "input_resolution", None)
         if not S:

@@ -9,9 +9,9 @@ module is what that script shares with the tests, which run it on tiny models. I
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -42,7 +42,8 @@ class Exported:
     max_diff_mm: dict[str, float]
 
 
-def example_inputs(resolution: int, dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def example_inputs(resolution: int, dtype: torch.dtype = torch.float32,
+                   seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """One random crop [1, S, S, 3] in [0, 1] (in `dtype`) and a plausible K' [1, 3, 3]
     (focal length 2 S, principal point (S/2, S/2))."""
     g = torch.Generator().manual_seed(seed)
@@ -67,8 +68,8 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     with torch.inference_mode():
         reference = module(*example)
     if tuple(reference.shape) != (1, len(joint_names), 3):
-        raise ValueError(f"the module returns {list(reference.shape)} for one crop; expected [1, {len(joint_names)}, 3] "
-                         "(one row per joint name)")
+        raise ValueError(f"the module returns {list(reference.shape)} for one crop; "
+                         f"expected [1, {len(joint_names)}, 3] (one row per joint name)")
     joints = stem.with_suffix(".joints.txt")
     joints.write_text("".join(f"{n}\n" for n in joint_names))
     ts = stem.with_suffix(".pt")
@@ -88,11 +89,13 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
         try:
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.filterwarnings("ignore", category=DeprecationWarning)  # the legacy exporter's own
-                torch.onnx.export(module, example, str(path), dynamo=False, opset_version=opset, do_constant_folding=True,
-                                  input_names=["image", "intrinsics"], output_names=["poses3d"])
+                torch.onnx.export(module, example, str(path), dynamo=False, opset_version=opset,
+                                  do_constant_folding=True, input_names=["image", "intrinsics"],
+                                  output_names=["poses3d"])
             dt = {torch.float32: "float32", torch.float16: "float16", torch.uint8: "uint8"}[dtype]
-            diffs["onnx"] = float(np.abs(OnnxCropModel(path, ["CPUExecutionProvider"], 1, dt, None)(*args) - want).max())
-        except Exception as e:  # noqa: BLE001 - the exporter raises many types; TorchScript still serves
+            diffs["onnx"] = float(np.abs(OnnxCropModel(path, ["CPUExecutionProvider"], 1, dt, None)(*args)
+                                         - want).max())
+        except Exception as e:  # the exporter raises many types; TorchScript still serves
             path.unlink(missing_ok=True)
             path, error = None, f"{type(e).__name__}: {e}"
     return Exported(ts, joints, path, error, diffs)

@@ -33,7 +33,9 @@ class CompletionParams:
     """Parameters of `complete_depth`."""
 
     min_depth: float = param(0.1, minimum=0)  # metres; nearer sensor values count as unknown
-    max_depth: float = param(10.0, exclusiveMinimum=0, maximum=64)  # metres; farther sensor values count as unknown (at most 64: the morphology's 16-bit millimetres)
+    max_depth: float = param(
+        # metres; farther sensor values count as unknown (at most 64: the morphology's 16-bit millimetres)
+        10.0, exclusiveMinimum=0, maximum=64)
     extrapolate: bool = False  # IP-Basic's column-top extension and 31x31 fill (LiDAR); off for Kinect-style depth
     blur: Literal["gaussian", "bilateral", "none"] = "gaussian"  # blur of filled pixels (IP-Basic step 7)
     keep_valid: bool = True  # measured pixels keep their sensor value; only holes are filled

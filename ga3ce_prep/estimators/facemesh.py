@@ -57,11 +57,20 @@ MESH_OUTPUTS = [LiteTensor("conv2d_21", (1, 1, 1, 3 * N_LANDMARKS)), LiteTensor(
 class FaceMeshOptions(LiteParams):
     """Everything `FaceMeshEstimator` is configured with besides its two files."""
 
-    box_scale: float = param(2.0, exclusiveMinimum=0)  # detector crop side / the head box's longer side; BlazeFace short-range expects the face to fill a fair part of its input, and 2 leaves room for a loose or offset box
-    min_detection_score: float = param(0.5, minimum=0, maximum=1)  # BlazeFace score (sigmoid) below which there is no face; MediaPipe's default
-    nms_iou: float = param(0.3, minimum=0, maximum=1)  # IoU above which detections merge in the weighted NMS; MediaPipe's default
-    roi_scale: float = param(1.5, exclusiveMinimum=0)  # face-mesh crop side / the detection box's longer side; MediaPipe's 1.5, the mesh was trained on it
-    min_face_score: float = param(0.5, minimum=0, maximum=1)  # face-mesh face flag (sigmoid) below which the crop holds no face; MediaPipe's default
+    box_scale: float = param(
+        # detector crop side / the head box's longer side; BlazeFace short-range expects the
+        # face to fill a fair part of its input, and 2 leaves room for a loose or offset box
+        2.0, exclusiveMinimum=0)
+    min_detection_score: float = param(
+        0.5, minimum=0, maximum=1)  # BlazeFace score (sigmoid) below which there is no face; MediaPipe's default
+    nms_iou: float = param(
+        0.3, minimum=0, maximum=1)  # IoU above which detections merge in the weighted NMS; MediaPipe's default
+    roi_scale: float = param(
+        # face-mesh crop side / the detection box's longer side; MediaPipe's 1.5, the mesh was trained on it
+        1.5, exclusiveMinimum=0)
+    min_face_score: float = param(
+        # face-mesh face flag (sigmoid) below which the crop holds no face; MediaPipe's default
+        0.5, minimum=0, maximum=1)
 
 
 @dataclass(frozen=True)

@@ -36,14 +36,22 @@ Two ways to run the graphs (the same arithmetic, the same outputs):
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 import onnxruntime as ort
 
-from .fast_decoder_graphs import (IMAGE_TENSORS, STATE, TOKEN_IMAGE_INPUTS, Derived, build_image_graph,
-                                  build_mask_graph, raw_to_image)
+from .fast_decoder_graphs import (
+    IMAGE_TENSORS,
+    STATE,
+    TOKEN_IMAGE_INPUTS,
+    Derived,
+    build_image_graph,
+    build_mask_graph,
+    raw_to_image,
+)
 from .fast_decoder_tokens import build_token_graph
 from .fast_decoder_weights import decoder_weights
 from .mobilesam import MULTIMASK_TOKENS
@@ -100,10 +108,12 @@ class FastDecoder:
         self.batch_size: int | None = None if io_binding else self.CPU_BATCH_SIZE if on_cpu else self.GPU_BATCH_SIZE
         self._image = create_session(build_image_graph(w, d).SerializeToString(), providers, threads,
                                      "fast decoder (image)")
-        self._tokens = create_session(build_token_graph(w, d, self.CPU_TOKEN_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
-                                      providers, threads, "fast decoder (tokens)")
-        self._masks = create_session(build_mask_graph(w, d, self.CPU_MASK_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
-                                     providers, threads, "fast decoder (masks)")
+        self._tokens = create_session(
+            build_token_graph(w, d, self.CPU_TOKEN_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
+            providers, threads, "fast decoder (tokens)")
+        self._masks = create_session(
+            build_mask_graph(w, d, self.CPU_MASK_PIXEL_CHUNKS if on_cpu else 1).SerializeToString(),
+            providers, threads, "fast decoder (masks)")
         self._img: dict[str, ort.OrtValue] | None = None
 
     def _value(self, array: np.ndarray, dtype: type = np.float32) -> ort.OrtValue:

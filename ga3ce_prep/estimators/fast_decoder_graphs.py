@@ -182,7 +182,8 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived, pixel_chunks: int = 1
     hT = g.reshape(g.transpose(st["hyper_in"], [0, 2, 1]), [0, 1, 32, 1, 4])         # (K, 1, 32, 1, 4)
     hblock = g.reshape(g.mul(hT, g.const(np.eye(4).reshape(4, 1, 4, 1))), [0, 128, 16])   # (K, 128, 16)
     n = P // pixel_chunks
-    ones_col = g.op("Expand", g.const(np.ones((1, 1, 1, 1))), g.concat([k_dim, g.const([n, 4, 1], dtype=np.int64)], axis=0))
+    ones_col = g.op("Expand", g.const(np.ones((1, 1, 1, 1))),
+                    g.concat([k_dim, g.const([n, 4, 1], dtype=np.int64)], axis=0))
     outs = []
     for p0 in range(0, P, n):   # the embedding pixels p0 .. p0 + n - 1
         lt, sc_p, r21_p = (g.slice(leftT, [p0], [p0 + n], [2]), g.slice(sc, [p0], [p0 + n], [0]),

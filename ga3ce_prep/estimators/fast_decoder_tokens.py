@@ -22,7 +22,7 @@ import onnx
 from onnx import TensorProto
 
 from .fast_decoder_graphs import IMAGE_TENSORS, STATE, TOKEN_IMAGE_INPUTS, DecoderGraph, Derived
-from .fast_decoder_weights import C, D, H, N_OUT, P
+from .fast_decoder_weights import N_OUT, C, D, H, P
 
 
 def _heads_T(m: np.ndarray) -> np.ndarray:

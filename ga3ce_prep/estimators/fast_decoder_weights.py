@@ -31,7 +31,7 @@ class _OnnxParams:
     def __init__(self, path: Path):
         try:
             model = onnx.load(str(path))
-        except Exception as e:  # noqa: BLE001 - onnx raises several types for bad files
+        except Exception as e:  # onnx raises several types for bad files
             raise ModelFileError(f"cannot read decoder ONNX {path}: {e}") from e
         self.path = path
         g = model.graph

@@ -22,7 +22,8 @@ from .onnx_runtime import RuntimeParams
 
 OPTIONS = PRESETS["fastdepth"]
 NET_SIZE = OPTIONS.size[1]
-NET_FOCAL_PX = OPTIONS.focal_px  # horizontal focal length, pixels of the 224-wide input (NYU fx 518.9, 250/480 resize, 304-px crop)
+# horizontal focal length, pixels of the 224-wide input (NYU fx 518.9, 250/480 resize, 304-px crop)
+NET_FOCAL_PX = OPTIONS.focal_px
 
 
 def centre_crop_4x3(width: int, height: int) -> tuple[int, int, int, int]:
@@ -39,7 +40,8 @@ def focal_rescale(fx: float, crop_width: int) -> float:
 class FastDepthEstimator(MonoDepthEstimator):
     """FastDepth on one ONNX file; the interface is checked on load (ModelFileError)."""
 
-    def __init__(self, path: str | Path, options: RuntimeParams = RuntimeParams()):
+    def __init__(self, path: str | Path,
+                 options: RuntimeParams = RuntimeParams()):  # noqa: B008 - frozen dataclass: safe to share
         super().__init__(path, OPTIONS, options, what="FastDepth")
 
 

@@ -65,8 +65,8 @@ def _joint_box(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarray:
 def preprocessed_boxes(kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The head and body boxes (T, 4) u, v, w, h float64 full-image pixels that GAFA's preprocessing
     stores for BODY_25 keypoints kp (T, 25, >=2) pixels (0 = undetected); module docstring."""
-    head = _square(_expand(_joint_box(kp, BODY25_HEAD), t=0.85, b=-0.2, l=0.1, r=0.1))
-    u, v, side, _ = _square(_expand(_joint_box(kp, slice(None)), t=0.15, b=0.05, l=0.2, r=0.2)).T
+    head = _square(_expand(_joint_box(kp, BODY25_HEAD), top=0.85, bottom=-0.2, left=0.1, right=0.1))
+    u, v, side, _ = _square(_expand(_joint_box(kp, slice(None)), top=0.15, bottom=0.05, left=0.2, right=0.2)).T
     diff = side - side * (CROP_W / CROP_H)
     body = np.stack([u + np.floor(diff / 2), v, side - diff, side], axis=1)
     return head, body
@@ -116,7 +116,9 @@ class GafaViewEstimator:
     """GazeNet on one ONNX file (contract above, checked on load: ModelFileError), with a small
     per-process cache of body crops: consecutive windows share 6 of their 7 frames."""
 
-    def __init__(self, path: str | Path, options: RuntimeParams = RuntimeParams(), cached_crops: int = 32):
+    def __init__(self, path: str | Path,
+                 options: RuntimeParams = RuntimeParams(),  # noqa: B008 - frozen dataclass: safe to share
+                 cached_crops: int = 32):
         self.path = Path(path)
         self.session = create_session(self.path, resolve_providers(options.providers), options.threads,
                                       "GAFA view")

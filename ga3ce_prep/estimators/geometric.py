@@ -45,17 +45,24 @@ class GeometricParams:
     smooth: Literal[1, 3, 5] = 5  # median filter size on the depth before sampling (1: none)
     max_planes: int = param(4, minimum=0)  # at most this many RANSAC planes
     plane_distance: float = param(0.03, exclusiveMinimum=0)  # metres, RANSAC inlier distance
-    plane_band: float = param(0.04, exclusiveMinimum=0)  # metres; free points this near a found plane leave the pool (its noisy band)
-    band_frac: float = param(0.7, minimum=0, maximum=1)  # a cluster with more than this fraction of its points in a plane's band is that plane's noise and is dropped
-    noise_ref_depth: float = param(2.5, exclusiveMinimum=0)  # metres; plane tolerances grow as (z / noise_ref_depth)^2 beyond it (Kinect-style noise)
+    plane_band: float = param(
+        0.04, exclusiveMinimum=0)  # metres; free points this near a found plane leave the pool (its noisy band)
+    band_frac: float = param(
+        # a cluster with more than this fraction of its points in a plane's band is that plane's noise and is dropped
+        0.7, minimum=0, maximum=1)
+    noise_ref_depth: float = param(
+        # metres; plane tolerances grow as (z / noise_ref_depth)^2 beyond it (Kinect-style noise)
+        2.5, exclusiveMinimum=0)
     plane_iterations: int = param(200, minimum=1)  # RANSAC iterations per plane
-    plane_subsample: int = param(4, minimum=1)  # RANSAC runs on every n-th free point (speed); all points are then assigned
+    plane_subsample: int = param(
+        4, minimum=1)  # RANSAC runs on every n-th free point (speed); all points are then assigned
     min_plane_frac: float = param(0.08, exclusiveMinimum=0, maximum=1)  # a plane needs this fraction of the points
     keep_planes: bool = True  # planes (split into connected pieces) are segments too; false: only removed
     cluster_eps: float = param(0.06, exclusiveMinimum=0)  # metres, DBSCAN neighbourhood
     cluster_min_points: int = param(5, minimum=1)  # DBSCAN core-point neighbours
     min_segment_points: int = param(6, minimum=1)  # segments with fewer grid points are dropped
-    depth_tol: float = param(0.05, exclusiveMinimum=0)  # metres; a pixel keeps its grid point's label only within this depth
+    depth_tol: float = param(
+        0.05, exclusiveMinimum=0)  # metres; a pixel keeps its grid point's label only within this depth
     drop_subject: bool = True  # remove the segment under the head box centre (the subject)
     max_range: float = param(8.0, exclusiveMinimum=0)  # metres; farther points are ignored
 

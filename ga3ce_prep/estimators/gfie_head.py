@@ -24,8 +24,9 @@ it is, pointing from the eye toward the target.
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -99,8 +100,9 @@ def load_gfie_weights(path: str | Path, net: nn.Module, prefix: str = "", ignore
     try:
         with torch.serialization.safe_globals(_numpy_scalar_globals()):
             ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=zipfile.is_zipfile(path))
-    except Exception as e:  # noqa: BLE001 - any unpickling failure means "not a GFIE checkpoint"
-        why = str(e).split("WeightsUnpickler error: ")[-1].split("\n")[0].split(". Please use")[0]  # torch's advice: not ours
+    except Exception as e:  # any unpickling failure means "not a GFIE checkpoint"
+        # the first line of torch's message, without its advice (not ours)
+        why = str(e).split("WeightsUnpickler error: ")[-1].split("\n")[0].split(". Please use")[0]
         raise ModelFileError(f"cannot read GFIE checkpoint {path} with weights_only=True (tensors, containers "
                              f"and numpy scalars only): {why}") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), Mapping):

@@ -33,11 +33,20 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 class CropParams:
     """How a head-crop network's input is made from the image and the head box; GFIE's defaults."""
 
-    box_expand: float = param(0.1, minimum=0)  # k of GFIE's sequential box expansion: x1 -= k w, then x2 += k (x2 - x1) with the moved x1 (-0.10 w left/top, +0.11 w right/bottom for 0.1); 0: the box as annotated
-    input_size: int = param(224, minimum=1)  # the crop is resized (Pillow bilinear, aspect ratio not kept) to input_size x input_size pixels
+    box_expand: float = param(
+        # k of GFIE's sequential box expansion: x1 -= k w, then x2 += k (x2 - x1) with the
+        # moved x1 (-0.10 w left/top, +0.11 w right/bottom for 0.1); 0: the box as annotated
+        0.1, minimum=0)
+    input_size: int = param(
+        # the crop is resized (Pillow bilinear, aspect ratio not kept) to input_size x input_size pixels
+        224, minimum=1)
     channels: Literal["rgb", "bgr"] = "rgb"  # channel order the network reads
-    mean: tuple[float, ...] = param(IMAGENET_MEAN, minItems=3, maxItems=3)  # per channel (in `channels` order), subtracted from pixel / 255
-    std: tuple[float, ...] = param(IMAGENET_STD, minItems=3, maxItems=3, items={"exclusiveMinimum": 0})  # per channel (in `channels` order), divides (pixel / 255 - mean); pixels 0-255 in: mean 0, std 1/255 = 0.00392156862745098
+    mean: tuple[float, ...] = param(
+        IMAGENET_MEAN, minItems=3, maxItems=3)  # per channel (in `channels` order), subtracted from pixel / 255
+    std: tuple[float, ...] = param(
+        # per channel (in `channels` order), divides (pixel / 255 - mean);
+        # pixels 0-255 in: mean 0, std 1/255 = 0.00392156862745098
+        IMAGENET_STD, minItems=3, maxItems=3, items={"exclusiveMinimum": 0})
     layout: Literal["nchw", "nhwc"] = "nchw"  # input tensor layout: (1, 3, S, S) or (1, S, S, 3)
 
 

@@ -28,7 +28,10 @@ class HeadOnnxOptions(CropParams, RuntimeParams):
     """The crop recipe (GFIE's by default), the output and its axes, and the ONNX Runtime options."""
 
     output: str | None = None  # the output holding the (1, 3) vector; null: the model's one output of that shape
-    axes: tuple[str, ...] = param(("x", "y", "z"), minItems=3, maxItems=3, items={"enum": list(AXES)})  # our camera axis (x right, y down, z forward) each output component points along, with its sign: ["x", "y", "z"] as it is, ["-x", "-y", "z"] for x left and y up
+    axes: tuple[str, ...] = param(
+        # our camera axis (x right, y down, z forward) each output component points along,
+        # with its sign: ["x", "y", "z"] as it is, ["-x", "-y", "z"] for x left and y up
+        ("x", "y", "z"), minItems=3, maxItems=3, items={"enum": list(AXES)})
 
 
 def axes_matrix(axes: tuple[str, ...]) -> np.ndarray:

@@ -8,9 +8,9 @@ the ONNX backends instead (docs/models.md).
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -22,7 +22,9 @@ from ..params import param
 class LiteParams:
     """How a LiteRT estimator runs: every TFLite backend's parameters include these."""
 
-    threads: int = param(1, minimum=1)  # LiteRT (XNNPACK) threads per interpreter; these models are small, so 1 thread and dask workers for parallelism
+    threads: int = param(
+        # LiteRT (XNNPACK) threads per interpreter; these models are small, so 1 thread and dask workers for parallelism
+        1, minimum=1)
 
 
 @dataclass(frozen=True)

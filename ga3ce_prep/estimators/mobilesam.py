@@ -23,11 +23,12 @@ from __future__ import annotations
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterator, Literal, Protocol, Sequence, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -36,8 +37,15 @@ from PIL import Image
 from ..errors import ConfigError, FrameError, ModelFileError
 from . import amg
 from .amg_reuse import ReuseStep, SequenceReuse
-from .onnx_runtime import (RuntimeParams, TensorSpec, check_contract, create_session, file_sha256, input_dims,
-                           resolve_providers)
+from .onnx_runtime import (
+    RuntimeParams,
+    TensorSpec,
+    check_contract,
+    create_session,
+    file_sha256,
+    input_dims,
+    resolve_providers,
+)
 
 IMG_SIZE = 1024
 PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)   # RGB, 0-255
@@ -366,8 +374,16 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
     """Everything `MobileSamSegmenter` is configured with besides its two files: the generator's
     options (AmgOptions), the ONNX Runtime settings (RuntimeParams) and the decoder mode."""
 
-    decoder_mode: Literal["fast", "official"] = "fast"  # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several times faster), multimask even from a single-mask export (its weights hold all 4 mask tokens); official: the exported decoder graph, one call per prompt (a single-mask export gives one mask per point)
-    io_binding: Literal["auto", "on", "off"] = "auto"  # fast decoder: all prompts of a crop in one batch through ONNX Runtime I/O binding, its state kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU (for testing; same masks); off: batches of 8 (CPU) or 64 prompts, outputs through host memory
+    decoder_mode: Literal["fast", "official"] = (
+        # fast: restructured decoder built from the decoder file's weights, IoU filter first (same masks, several
+        # times faster), multimask even from a single-mask export (its weights hold all 4 mask tokens); official:
+        # the exported decoder graph, one call per prompt (a single-mask export gives one mask per point)
+        "fast")
+    io_binding: Literal["auto", "on", "off"] = (
+        # fast decoder: all prompts of a crop in one batch through ONNX Runtime I/O binding, its state
+        # kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU
+        # (for testing; same masks); off: batches of 8 (CPU) or 64 prompts, outputs through host memory
+        "auto")
 
 
 class MobileSamSegmenter:
@@ -385,7 +401,8 @@ class MobileSamSegmenter:
         if decoder_mode not in ("fast", "official"):
             raise ModelFileError(f"decoder_mode must be 'fast' or 'official', got {decoder_mode!r}")
         if options.io_binding == "on" and decoder_mode != "fast":
-            raise ConfigError("io_binding 'on' runs the fast decoder's graphs: set decoder_mode 'fast' or io_binding 'auto'")
+            raise ConfigError("io_binding 'on' runs the fast decoder's graphs: "
+                              "set decoder_mode 'fast' or io_binding 'auto'")
         self.options = options
         self.providers = resolve_providers(options.providers)
         self.encoder_path, self.decoder_path = Path(encoder), Path(decoder)
@@ -515,7 +532,7 @@ class MobileSamSegmenter:
             with timer("reuse"):
                 plan = reuse.plan(emb, coords)
         prompts = np.arange(len(points)) if plan is None else np.flatnonzero(plan)
-        step = self.decoder.batch_size or max(1, len(prompts))                     # None: all at once; results do not depend on it
+        step = self.decoder.batch_size or max(1, len(prompts))  # None: all at once; results do not depend on it
         batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
 
         # A reuse key frame also keeps the candidates within the reuse margin below the filters' thresholds

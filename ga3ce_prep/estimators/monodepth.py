@@ -46,21 +46,39 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 class MonoDepthOptions:
     """How a metric depth export is run; every field left null takes the preset's value."""
 
-    size: tuple[int, ...] | None = param(None, minItems=2, maxItems=2, items={"minimum": 1})  # network input (H, W) pixels: stretch's exact size (null in the preset: the file's fixed size), keep_aspect's lower bound
-    resize: Literal["stretch", "keep_aspect"] | None = None  # stretch: to size exactly; keep_aspect: the smallest scaling with both sides >= size, sides rounded to a multiple of `multiple`
-    multiple: int | None = param(None, minimum=1)  # keep_aspect: each side a multiple of this (ZoeDepth 32, Depth-Anything 14)
-    crop_aspect: tuple[int, ...] | None = param(None, maxItems=2, items={"minimum": 1})  # [W, H]: the network sees the largest centred crop of this aspect (FastDepth [4, 3]); []: the whole image
+    size: tuple[int, ...] | None = param(
+        # network input (H, W) pixels: stretch's exact size (null in
+        # the preset: the file's fixed size), keep_aspect's lower bound
+        None, minItems=2, maxItems=2, items={"minimum": 1})
+    resize: Literal["stretch", "keep_aspect"] | None = (
+        # stretch: to size exactly; keep_aspect: the smallest scaling with
+        # both sides >= size, sides rounded to a multiple of `multiple`
+        None)
+    multiple: int | None = param(
+        None, minimum=1)  # keep_aspect: each side a multiple of this (ZoeDepth 32, Depth-Anything 14)
+    crop_aspect: tuple[int, ...] | None = param(
+        # [W, H]: the network sees the largest centred crop of this aspect (FastDepth [4, 3]); []: the whole image
+        None, maxItems=2, items={"minimum": 1})
     interpolation: Literal["area", "linear", "cubic"] | None = None  # OpenCV interpolation of the image resize
     channels: Literal["rgb", "bgr"] | None = None  # channel order the network reads
     input_range: Literal["0-1", "0-255"] | None = None  # pixel values before mean and std: RGB / 255, or RGB as is
-    mean: tuple[float, ...] | None = param(None, minItems=3, maxItems=3)  # per channel, subtracted (in input_range units, channel order as fed)
-    std: tuple[float, ...] | None = param(None, minItems=3, maxItems=3, items={"exclusiveMinimum": 0})  # per channel, divided by
+    mean: tuple[float, ...] | None = param(
+        None, minItems=3, maxItems=3)  # per channel, subtracted (in input_range units, channel order as fed)
+    std: tuple[float, ...] | None = param(
+        None, minItems=3, maxItems=3, items={"exclusiveMinimum": 0})  # per channel, divided by
     layout: Literal["nchw", "nhwc"] | None = None  # the input tensor's layout (batch 1)
     output_name: str | None = None  # the depth output's name; null: the output numbered output_index
-    output_index: int | None = param(None, minimum=0)  # the depth output's position among the outputs, when output_name is null
+    output_index: int | None = param(
+        None, minimum=0)  # the depth output's position among the outputs, when output_name is null
     units: Units | None = None  # the output's unit: m, cm, mm, or inverse_m (1 / metres, inverted here)
-    focal_px: float | None = param(None, minimum=0)  # the focal length (network-input pixels) the network was trained at: depth x (f_x in input pixels) / focal_px; 0: no rescale
-    plausible_depth: tuple[float, ...] | None = param(None, minItems=2, maxItems=2, items={"exclusiveMinimum": 0})  # metres [min, max]: a frame whose median predicted depth is outside is refused (wrong units?); pixels beyond max are unknown
+    focal_px: float | None = param(
+        # the focal length (network-input pixels) the network was trained
+        # at: depth x (f_x in input pixels) / focal_px; 0: no rescale
+        None, minimum=0)
+    plausible_depth: tuple[float, ...] | None = param(
+        # metres [min, max]: a frame whose median predicted depth is
+        # outside is refused (wrong units?); pixels beyond max are unknown
+        None, minItems=2, maxItems=2, items={"exclusiveMinimum": 0})
 
 
 # The presets (docs/models.md, "Metric monocular depth from your ONNX file", says where each value
@@ -149,7 +167,8 @@ class MonoDepthEstimator:
     file): one float32 rank-4 image input with 3 channels where the layout puts them, a fixed
     input size if `resize` is stretch and `size` unset, and the depth output present."""
 
-    def __init__(self, path: str | Path, opt: MonoDepthOptions, runtime: RuntimeParams = RuntimeParams(),
+    def __init__(self, path: str | Path, opt: MonoDepthOptions,
+                 runtime: RuntimeParams = RuntimeParams(),  # noqa: B008 - frozen dataclass: safe to share
                  what: str = "depth", fix: str = "the depth backend's units"):
         self.path, self.opt, self.what, self.fix = Path(path), opt, what, fix
         if len(opt.crop_aspect) not in (0, 2) or not opt.plausible_depth[0] < opt.plausible_depth[1]:
@@ -159,7 +178,8 @@ class MonoDepthEstimator:
         where = f"{what} ONNX {self.path}"
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         if len(inputs) != 1:
-            raise ModelFileError(f"{where}: {len(inputs)} inputs ({[a.name for a in inputs]}); a depth export takes one image")
+            raise ModelFileError(
+                f"{where}: {len(inputs)} inputs ({[a.name for a in inputs]}); a depth export takes one image")
         inp = inputs[0]
         dims = tuple(d if isinstance(d, int) else None for d in (inp.shape or []))
         if len(dims) != 4 or inp.type != "tensor(float)":
@@ -168,13 +188,14 @@ class MonoDepthEstimator:
         c, (h, w) = (dims[1], dims[2:]) if opt.layout == "nchw" else (dims[3], dims[1:3])
         if c not in (3, None):
             raise ModelFileError(f"{where}: input {inp.name!r} {list(inp.shape)} has {c} channels where layout "
-                                 f"{opt.layout} puts them; expected 3 (set layout: {'nhwc' if opt.layout == 'nchw' else 'nchw'}?)")
+                                 f"{opt.layout} puts them; expected 3 "
+                                 f"(set layout: {'nhwc' if opt.layout == 'nchw' else 'nchw'}?)")
         self.input_name = inp.name
         self.fixed = (h, w) if h is not None and w is not None else None
         if opt.resize == "stretch":
             if opt.size is None and self.fixed is None:
-                raise ModelFileError(f"{where}: the input {inp.name!r} {list(inp.shape)} has no fixed height and width; "
-                                     "set the depth backend's size [H, W]")
+                raise ModelFileError(f"{where}: the input {inp.name!r} {list(inp.shape)} has no fixed height "
+                                     "and width; set the depth backend's size [H, W]")
             if opt.size is not None and self.fixed is not None and tuple(opt.size) != self.fixed:
                 raise ModelFileError(f"{where}: the input is fixed at {self.fixed[0]}x{self.fixed[1]} (HxW) but size "
                                      f"is {list(opt.size)}")
@@ -187,7 +208,8 @@ class MonoDepthEstimator:
                 raise ModelFileError(f"{where}: no output named {opt.output_name!r}; the outputs are {names}")
             self.output_name = opt.output_name
         elif opt.output_index >= len(names):
-            raise ModelFileError(f"{where}: output_index {opt.output_index} but the file has {len(names)} outputs {names}")
+            raise ModelFileError(
+                f"{where}: output_index {opt.output_index} but the file has {len(names)} outputs {names}")
         else:
             self.output_name = names[opt.output_index]
         self.mean = np.asarray(opt.mean, np.float32)
@@ -219,7 +241,8 @@ class MonoDepthEstimator:
         raw = np.asarray(self.session.run([self.output_name], {self.input_name: x})[0])
         out = raw.squeeze()
         if out.ndim != 2:
-            raise ModelFileError(f"{self.what} ONNX {self.path}: output {self.output_name!r} has shape {list(raw.shape)}; "
+            raise ModelFileError(f"{self.what} ONNX {self.path}: output {self.output_name!r} "
+                                 f"has shape {list(raw.shape)}; "
                                  "expected one (h, w) depth map (with any size-1 batch or channel axes)")
         out = np.where(np.isfinite(out), out, 0).astype(np.float32)
         d = to_metres(out, opt.units)

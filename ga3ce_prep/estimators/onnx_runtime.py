@@ -3,9 +3,10 @@ check of a model file's inputs and outputs against the interface the runner expe
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 from ..errors import ConfigError, ModelFileError
 from ..params import param
@@ -29,7 +30,10 @@ class TensorSpec:
 class RuntimeParams:
     """How an ONNX estimator runs: every ONNX backend's parameters include these."""
 
-    providers: str = "cpu"  # ONNX Runtime execution providers in preference order, comma-separated: cpu, cuda (needs onnxruntime-gpu), tensorrt, or full provider names
+    providers: str = (
+        # ONNX Runtime execution providers in preference order, comma-separated:
+        # cpu, cuda (needs onnxruntime-gpu), tensorrt, or full provider names
+        "cpu")
     threads: int = param(2, minimum=1)  # intra-op threads per ONNX Runtime session
 
 
@@ -98,7 +102,7 @@ def create_session(model: str | Path | bytes, providers: Sequence[str], threads:
         import onnxruntime as ort
 
         return ort.InferenceSession(model, session_options(threads), providers=list(providers))
-    except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
+    except Exception as e:  # onnxruntime raises its own exception types
         where = model if isinstance(model, str) else "(in memory)"
         raise ModelFileError(f"cannot load {what} ONNX {where}: {e}") from e
 

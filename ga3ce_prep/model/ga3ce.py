@@ -26,7 +26,6 @@ from .encoding import ENCODINGS, PointEncoding
 from .rotation import ROTATIONS
 from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
 
-
 OUTPUTS: tuple[str, ...] = ("pointer", "regress")
 
 
@@ -35,15 +34,31 @@ class ModelConfig:
     """Architecture, encodings and ablation switches of GA3CE; defaults are the paper's values, or
     our reading where it is silent (docs/training.md, "The model")."""
 
-    rotation: str = "cyclotorsion"  # egocentric rotation: cyclotorsion (GA3CE's), axis_angle (ablation "no cyclotorsion"), none (ablation "no egocentric transform")
-    encoding: str = "d3"  # point encoding: d3 (direction ++ distance) or standard (gamma of the point itself, same widths; ablation "no D3")
+    rotation: str = (
+        # egocentric rotation: cyclotorsion (GA3CE's), axis_angle
+        # (ablation "no cyclotorsion"), none (ablation "no egocentric transform")
+        "cyclotorsion")
+    encoding: str = (
+        # point encoding: d3 (direction ++ distance) or standard
+        # (gamma of the point itself, same widths; ablation "no D3")
+        "d3")
     use_pose: bool = True  # False feeds every joint's learned missing-joint embedding (ablation "appearance + objects")
     use_objects: bool = True  # False feeds the learned null object token alone (ablation "appearance + pose")
     use_context: bool = True  # False is "appearance only": g = v, no parameters are used
-    output: str = "pointer"  # pointer (ours, docs/training.md "What the objects add": a first pass without objects gives g0, then g points at g0 or at an object, transformer.ObjectPointer) or regress (the paper: g = R^T MLP(decoder over the objects) + v)
-    cone_bias: bool = True  # the gaze-cone bias: regress adds cos(v, object direction from the head) to cross-attention (the paper); pointer adds pointer_kappa (cos(g0, object direction) - 1) to its logits
+    output: str = (
+        # pointer (ours, docs/training.md "What the objects add": a first pass without
+        # objects gives g0, then g points at g0 or at an object, transformer.ObjectPointer)
+        # or regress (the paper: g = R^T MLP(decoder over the objects) + v)
+        "pointer")
+    cone_bias: bool = (
+        # the gaze-cone bias: regress adds cos(v, object direction from the head) to cross-attention
+        # (the paper); pointer adds pointer_kappa (cos(g0, object direction) - 1) to its logits
+        True)
     cone_bias_scale: float = 1.0  # regress: multiplies the paper's gaze-cone bias (1 = the paper)
-    pointer_kappa: float = 300.0  # pointer: sharpness of the cone around g0 (300: an object 5 degrees off g0 loses 1.1 to the null token, 10 degrees off 4.6; chosen on val)
+    pointer_kappa: float = (
+        # pointer: sharpness of the cone around g0 (300: an object 5 degrees off
+        # g0 loses 1.1 to the null token, 10 degrees off 4.6; chosen on val)
+        300.0)
     d_model: int = 256  # transformer width = E_subject's width, view_width + 15 x joint_width
     n_heads: int = 2  # attention heads
     dim_feedforward: int = 512  # feed-forward width of each transformer layer
@@ -57,12 +72,16 @@ class ModelConfig:
     joint_dir_width: int = 6  # of joint_width, the direction part of D3 (the rest: distance)
     object_dir_width: int = 128  # of d_model, the direction part of each object's D3 (the rest: distance)
     view_scale: float = 1.0  # Fourier scale of gamma(v'), cycles per unit-vector component
-    direction_scale: float = 0.25  # Fourier scale of D3's direction part, cycles per unit-vector component (chosen on val)
+    direction_scale: float = (
+        # Fourier scale of D3's direction part, cycles per unit-vector component (chosen on val)
+        0.25)
     pose_distance_scale: float = 0.05  # Fourier scale of D3's joint distance, cycles per head width
     object_distance_scale: float = 0.3  # Fourier scale of D3's object distance, cycles per metre
     pose_position_scale: float = 0.05  # standard encoding's scale for joints, cycles per head width (chosen on val)
     object_position_scale: float = 0.15  # standard encoding's scale for objects, cycles per metre (chosen on val)
-    head_width_pair: tuple[int, int] = HEAD_WIDTH_PAIR  # joints whose distance is the head width 1/s of the pose normalisation
+    head_width_pair: tuple[int, int] = (
+        # joints whose distance is the head width 1/s of the pose normalisation
+        HEAD_WIDTH_PAIR)
     fourier_seed: int = 0  # seed of the fixed Gaussian matrices B of every Fourier encoding
 
     def __post_init__(self) -> None:
@@ -84,7 +103,7 @@ class ModelConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "ModelConfig":
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
         known = {f.name for f in fields(cls)}
         d = {"output": "regress", **d}  # configurations saved before the pointer existed are the paper's model
         unknown = set(d) - known
@@ -127,8 +146,8 @@ class GA3CE(nn.Module):
         e_pose = torch.where(valid[..., None], e_pose, self.missing_joint.expand_as(e_pose))
         return torch.cat([self.view_encoding(view_ego), e_pose.flatten(1)], dim=-1)
 
-    def forward(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor,
-                objects: torch.Tensor, mask: torch.Tensor, all_passes: bool = False) -> torch.Tensor | list[torch.Tensor]:
+    def forward(self, view: torch.Tensor, pose: torch.Tensor, head_pos: torch.Tensor, objects: torch.Tensor,
+                mask: torch.Tensor, all_passes: bool = False) -> torch.Tensor | list[torch.Tensor]:
         """g (B, 3); with all_passes the estimates (B, 3) of every pass, g last (for the loss):
         [g0, g] for the pointer output (g0: the first pass, the network without objects), else [g]."""
         passes, _ = self._passes(view, pose, head_pos, objects, mask)
@@ -180,7 +199,8 @@ class GA3CE(nn.Module):
                         objects: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """forward's g (B, 3), unchanged, and the decoder's cross-attention weights (B, layers,
         heads, 1 + S) over [null token, objects] (GazeTransformer.record_cross_attention; S = 0
-        when use_objects is off or the output is the pointer, whose decoder sees the null token alone). Eval mode; the appearance-only model (use_context off) has none."""
+        when use_objects is off or the output is the pointer, whose decoder sees the null token alone).
+        Eval mode; the appearance-only model (use_context off) has none."""
         if not self.config.use_context:
             raise ValueError("this model has no attention: use_context is off (the appearance-only row, g = v)")
         with self.transformer.record_cross_attention() as record:

@@ -158,7 +158,7 @@ class Cache:
             return entry
         except FileNotFoundError:
             return None
-        except Exception as e:  # noqa: BLE001 - whatever a damaged file makes zipfile or numpy raise
+        except Exception as e:  # whatever a damaged file makes zipfile or numpy raise
             log.warning("cache entry %s is damaged (%s: %s): removed, it is computed again", p, type(e).__name__, e)
             self.fs.rm_file(p) if self.remote else p.unlink(missing_ok=True)
             return None

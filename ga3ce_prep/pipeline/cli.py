@@ -37,7 +37,8 @@ import click
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
 @click.option("--models", "-m", type=click.Path(file_okay=False), default=None,
-              help="Folder of your model files, `{models}` in pipeline files. Default: $GA3CE_MODEL_DIR, else ./models.")
+              help="Folder of your model files, `{models}` in pipeline files. "
+                   "Default: $GA3CE_MODEL_DIR, else ./models.")
 @click.option("--summary-json", type=click.Path(dir_okay=False), default=None,
               help="Also write the run summary as JSON to this file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
@@ -46,9 +47,10 @@ def run(pipeline, data, out, overwrite, workers, scheduler, shard_size, limit, w
     """Preprocess a dataset into a 3D context store (staged, cached, resumable).
 
     Every check (pipeline schema, backends, model and data files, dataset layout, what is at --out,
-    the locks on the work directory and the output) runs before any work. Stages run on dask over shards of frames; each stage's output per shard is
-    cached atomically, so a killed run resumes where it stopped when you rerun the same command, and
-    a changed parameter recomputes only that stage and the stages after it.
+    the locks on the work directory and the output) runs before any work. Stages run on dask over
+    shards of frames; each stage's output per shard is cached atomically, so a killed run resumes
+    where it stopped when you rerun the same command, and a changed parameter recomputes only that
+    stage and the stages after it.
 
     \b
     Example:

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import os
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any

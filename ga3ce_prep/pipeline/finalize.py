@@ -103,7 +103,8 @@ def shard_block(shard: Shard, e: dict[str, dict[str, np.ndarray]], counts: Final
     fail_rows: list[tuple[str, str, str, str, str]] = []
     for stage in STAGES:
         entry = e[stage]
-        for i, err, msg in zip(entry["fail_idx"].tolist(), entry["fail_error"].tolist(), entry["fail_message"].tolist()):
+        for i, err, msg in zip(entry["fail_idx"].tolist(), entry["fail_error"].tolist(),
+                               entry["fail_message"].tolist()):
             action = "dropped" if DROPS_FRAME[stage] else "degraded"
             if DROPS_FRAME[stage]:
                 drop[i] = True
@@ -255,7 +256,7 @@ def _finished_counts(out: Path, run_key: str) -> FinalizeCounts | None:
         import zarr
 
         attrs = dict(zarr.open_group(str(out), mode="r").attrs)
-    except Exception:  # noqa: BLE001 - no store, or not a store
+    except Exception:  # no store, or not a store
         return None
     if (attrs.get("run") or {}).get("key") != run_key:
         return None

@@ -62,8 +62,9 @@ def build_graph(env: TaskEnv, shards: list[Shard]) -> tuple[list[Delayed], dict[
 def kinds_to_run(cache: Cache, present: set[tuple[str, str]], upstream: dict[str, tuple[str, ...]],
                  shard: Shard) -> set[str]:
     """The task kinds of `shard` to run: those with a missing entry (not in `present`, the cache's
-    (stage, key) listing: `Cache.entries`), and those whose entries a task to run reads but cannot (`Cache.load` removes a damaged entry, which is then computed in this run
-    instead of failing the task; the depth entry is the geometry task's own concern)."""
+    (stage, key) listing: `Cache.entries`), and those whose entries a task to run reads but cannot
+    (`Cache.load` removes a damaged entry, which is then computed in this run instead of failing the
+    task; the depth entry is the geometry task's own concern)."""
     kinds = task_stages(upstream)
     home = {st: k for k, stages in kinds.items() for st in stages}
     todo = {k for k, stages in kinds.items() if not all((st, shard.keys[st]) in present for st in stages)}

@@ -65,13 +65,14 @@ class RunLock:
         self.paths = (_local_lock_file(str(work), "/lock"), _local_lock_file(str(out), ".lock"))
         self._started = time.strftime("%Y-%m-%d %H:%M:%S")
         where = work if is_remote(work) else Path(work).resolve()
-        self.holder = f"{out} (pid {os.getpid()} on {socket.gethostname()}, work directory {where}, started {self._started})"
+        self.holder = (f"{out} (pid {os.getpid()} on {socket.gethostname()}, work directory {where}, "
+                       f"started {self._started})")
         self.fds: list[int] = []
         self.lost: dict | None = None  # the holder that took the lease over, if one did
         self._stop = threading.Event()
         self._beat: threading.Thread | None = None
 
-    def __enter__(self) -> "RunLock":
+    def __enter__(self) -> RunLock:
         try:
             for path in self.paths:
                 self.fds.append(self._acquire(path))
@@ -156,5 +157,5 @@ class RunLock:
                     self.lost = held
                     return
                 self.fs.pipe_file(self.lease, self._record())
-            except Exception:  # noqa: BLE001 - a missed beat; the next one retries
+            except Exception:  # a missed beat; the next one retries
                 continue

@@ -80,9 +80,11 @@ class RunSummary:
         lines = [
             f"store      {self.store}{'' if self.store_written else ' (already up to date)'}",
             f"pipeline   {self.pipeline}",
-            f"frames     {c.frames_kept} kept of {c.frames_total} ({c.frames_dropped} dropped) in {self.n_shards} shards",
+            f"frames     {c.frames_kept} kept of {c.frames_total} ({c.frames_dropped} dropped) "
+            f"in {self.n_shards} shards",
             f"objects    {c.objects} (per frame: mean {o['mean']:.1f}, median {o['median']:.0f}, "
-            f"min {o['min']:.0f}, max {o['max']:.0f}; {c.masks_dropped_few_points} masks dropped for too few depth points)",
+            f"min {o['min']:.0f}, max {o['max']:.0f}; "
+            f"{c.masks_dropped_few_points} masks dropped for too few depth points)",
         ]
         if c.failures:
             lines.append("failures   stage     dropped degraded  by error")
@@ -95,7 +97,8 @@ class RunSummary:
             lines.append("failures   none")
         lines.append("time       stage     computed  cached  seconds  ms/frame")
         for stage in STAGES:
-            n, k, s = self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0), self.seconds_by_stage.get(stage, 0.0)
+            n, k, s = (self.computed_shards.get(stage, 0), self.cached_shards.get(stage, 0),
+                       self.seconds_by_stage.get(stage, 0.0))
             nf = self.computed_frames.get(stage, 0)
             per = f"{1000 * s / nf:8.2f}" if nf else "       -"
             lines.append(f"           {stage:<9} {n:>8} {k:>7} {s:>8.2f}  {per}")
@@ -230,7 +233,7 @@ def _other_store(out: Location, conf: PipelineConfig, data_root: Path) -> str | 
 
     try:
         attrs = dict(zarr.open_group(str(out), mode="r").attrs)
-    except Exception as e:  # noqa: BLE001 - a damaged or unknown root: not known to be ours
+    except Exception as e:  # a damaged or unknown root: not known to be ours
         return f"a Zarr store whose root metadata cannot be read ({type(e).__name__}: {e})"
     if attrs == UNFINISHED:
         return None  # ours, killed before its commit (store.StoreWriter, finalize._uncommit)
@@ -261,7 +264,7 @@ def _probe(url: str) -> tuple[bool, bool]:
         return fs.exists(url), any(fs.exists(f"{url}/{m}") for m in ZARR_MARKERS)
     except ConfigError:
         raise
-    except Exception as e:  # noqa: BLE001 - credentials, endpoint, network: say which and stop
+    except Exception as e:  # credentials, endpoint, network: say which and stop
         raise ConfigError(f"--out {url}: cannot reach it ({type(e).__name__}: {e}); check the credentials and "
                           "endpoint (docs/pipeline.md, \"Object storage\")") from None
 
@@ -284,7 +287,8 @@ def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> tu
     try:
         adapter = open_dataset(conf.dataset_format, data_root, **conf.dataset_options)
     except TypeError as e:
-        raise ConfigError(f"dataset.options: {e} (see docs/datasets.md for the {conf.dataset_format} options)") from None
+        raise ConfigError(
+            f"dataset.options: {e} (see docs/datasets.md for the {conf.dataset_format} options)") from None
     frames = list(itertools.islice(adapter.frames(), None if limit is None else max(limit, 0)))
     if not frames:
         raise DatasetFormatError(f"{data_root}: the {conf.dataset_format} adapter found no frames")

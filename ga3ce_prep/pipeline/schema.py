@@ -3,7 +3,8 @@
 adapters (`ga3ce_prep.datasets.ADAPTERS`).
 
 `schemas/pipeline.schema.json` is its committed copy, for editors and other tools, and the copy the
-loader validates against (reading it needs no backend import). `make schema` rewrites it; a test fails while it is stale.
+loader validates against (reading it needs no backend import). `make schema` rewrites it; a test
+fails while it is stale.
 """
 from __future__ import annotations
 
@@ -24,7 +25,10 @@ class RunParams:
     """The pipeline file's `run` section."""
 
     shard_size: int = param(32, minimum=1)  # frames per shard (the unit of caching and of dask tasks)
-    cache_depth_maps: bool = False  # keep completed depth maps in the cache (1.5 MB per 640x480 frame); off: recompute them when a downstream stage needs them
+    cache_depth_maps: bool = (
+        # keep completed depth maps in the cache (1.5 MB per 640x480
+        # frame); off: recompute them when a downstream stage needs them
+        False)
 
 
 def _stage_schema(stage: str, names: list[str]) -> dict[str, Any]:

@@ -30,9 +30,10 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -194,7 +195,7 @@ class StageEntry:
                 source = {}
             self.ok(i, **self.values(out), **source)
             return out
-        except Exception as e:  # noqa: BLE001 - every per-frame problem becomes a record
+        except Exception as e:  # every per-frame problem becomes a record
             self.fail(i, e)
             return None
         finally:
@@ -209,12 +210,12 @@ class StageEntry:
         t = time.perf_counter()
         try:
             results = fn(frames, **needs)
-        except Exception:  # noqa: BLE001 - a frame's problem: found frame by frame below
+        except Exception:  # a frame's problem: found frame by frame below
             results = None
         self.seconds += time.perf_counter() - t
         for k, i in enumerate(rows):
             if results is None:
-                self.attempt(i, lambda: _first(fn([frames[k]], **{n: v[k:k + 1] for n, v in needs.items()})))
+                self.attempt(i, lambda k=k: _first(fn([frames[k]], **{n: v[k:k + 1] for n, v in needs.items()})))
             else:
                 self.attempt(i, _first, [results[k]])
 

@@ -58,7 +58,7 @@ class FrameObjects:
     n_dropped: int = 0
 
     @staticmethod
-    def empty() -> "FrameObjects":
+    def empty() -> FrameObjects:
         return FrameObjects(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32), 0)
 
 

@@ -127,7 +127,10 @@ class OnnxDepth(MonoDepth):
     @dataclass(frozen=True, kw_only=True)
     class Params(MonoDepthOptions, RuntimeParams):
         model: Path = param(file="model", hint=EXPORT_HINT)  # the ONNX export (one image input, a metric depth output)
-        preset: Preset = param()  # the export's preprocessing and output: zoedepth | depth-anything-v2-metric-indoor | depth-anything-v2-metric-outdoor | fastdepth | custom (nothing assumed); the options below override it
+        preset: Preset = param(
+            # the export's preprocessing and output: zoedepth | depth-anything-v2-metric-indoor |
+            # depth-anything-v2-metric-outdoor | fastdepth | custom (nothing assumed); the options below override it
+        )
 
     def model_file(self) -> Path:
         return self.p.model
@@ -173,9 +176,16 @@ class PrecomputedDepth(DepthBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, depth)")  # HDF5/npz: frame_id (N,) str, depth (N, H, W) at the image resolution
-        units: Units = "m"  # the stored depth's unit: m, cm, mm, or inverse_m (1 / metres); 0, negative and non-finite values are unknown
-        plausible_depth: tuple[float, ...] = param((0.1, 100.0), minItems=2, maxItems=2, items={"exclusiveMinimum": 0})  # metres [min, max]: a frame whose median depth is outside is refused (wrong units?)
+        file: Path = param(
+            # HDF5/npz: frame_id (N,) str, depth (N, H, W) at the image resolution
+            file="data", hint="write it with the layout in docs/pipeline.md (frame_id, depth)")
+        units: Units = (
+            # the stored depth's unit: m, cm, mm, or inverse_m (1 / metres);
+            # 0, negative and non-finite values are unknown
+            "m")
+        plausible_depth: tuple[float, ...] = param(
+            # metres [min, max]: a frame whose median depth is outside is refused (wrong units?)
+            (0.1, 100.0), minItems=2, maxItems=2, items={"exclusiveMinimum": 0})
 
     def _table(self):
         return precomputed_table(self.p.file, "depth", ("H", "W"), "stages.depth.params.file")

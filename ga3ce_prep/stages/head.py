@@ -12,8 +12,8 @@ from typing import Literal
 
 import numpy as np
 
-from ..estimators.placement import pose_depth_translation
 from ..errors import FrameError
+from ..estimators.placement import pose_depth_translation
 from ..frames import FrameRef
 from ..geometry import back_project, head_box_centre, window_median_depth
 from ..params import param
@@ -77,10 +77,18 @@ class DepthHead(HeadBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        window_fracs: tuple[float, ...] = param((0.2, 0.5, 1.0), minItems=1, items={"exclusiveMinimum": 0})  # window sides as fractions of the box's shorter side, tried in order
+        window_fracs: tuple[float, ...] = param(
+            # window sides as fractions of the box's shorter side, tried in order
+            (0.2, 0.5, 1.0), minItems=1, items={"exclusiveMinimum": 0})
         min_points: int = param(3, minimum=1)  # measured pixels a window needs
-        fallbacks: tuple[Fallback, ...] = ("pose_depth", "pose", "completed")  # no measured depth near the head: where the depth comes from, tried in order (docs/pipeline.md, "Head position"); [] drops the frame
-        joint_depth_offset: float = param(0.05, minimum=0)  # pose_depth: metres a body joint lies behind the surface the depth map measures (the 6 face joints lie on it)
+        fallbacks: tuple[Fallback, ...] = (
+            # no measured depth near the head: where the depth comes from, tried
+            # in order (docs/pipeline.md, "Head position"); [] drops the frame
+            ("pose_depth", "pose", "completed"))
+        joint_depth_offset: float = param(
+            # pose_depth: metres a body joint lies behind the surface
+            # the depth map measures (the 6 face joints lie on it)
+            0.05, minimum=0)
 
     def head(self, frame: FrameRef, depth: DepthMap, pose: np.ndarray) -> Sourced:
         """pose: (30, 3) the pose stage's output for the frame (NaN where it failed)."""

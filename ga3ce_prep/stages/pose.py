@@ -15,9 +15,9 @@ from typing import Literal
 
 import numpy as np
 
+from ..errors import FrameError
 from ..estimators.blazepose import BlazePoseOptions, place_landmarks
 from ..estimators.blazepose_smpl import to_smpl_head30
-from ..errors import FrameError
 from ..frames import DepthMap, FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
@@ -38,7 +38,9 @@ class PrecomputedPose(PoseBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, pose)")  # HDF5/npz: frame_id (N,) str, pose (N, 30, 3) in `units`
+        file: Path = param(
+            # HDF5/npz: frame_id (N,) str, pose (N, 30, 3) in `units`
+            file="data", hint="write it with the layout in docs/pipeline.md (frame_id, pose)")
         units: LengthUnits = "m"  # the stored joints' unit: m, cm or mm (converted to metres)
 
     def _table(self):
@@ -75,9 +77,11 @@ class OraclePose(PoseBackend):
     class Params(TruthParams):
         seed: int = 0  # noise seed (combined with the frame id)
         sigma_body: float = param(0.02, minimum=0)  # metres, per-axis joint noise off the face
-        sigma_face: float = param(0.04, minimum=0)  # metres, per-axis noise of the 6 face joints (nose, eyes, ears, head top)
+        sigma_face: float = param(
+            0.04, minimum=0)  # metres, per-axis noise of the 6 face joints (nose, eyes, ears, head top)
         scale_sigma: float = param(0.0, minimum=0)  # log-scale std of a per-frame scale about the camera centre
-        scale_bias: float = param(1.0, exclusiveMinimum=0)  # mean per-frame scale (an estimator's systematic size error)
+        scale_bias: float = param(
+            1.0, exclusiveMinimum=0)  # mean per-frame scale (an estimator's systematic size error)
         offset_sigma: float = param(0.0, minimum=0)  # metres, per-axis std of a per-frame offset
 
     def check(self) -> None:
@@ -104,11 +108,23 @@ class BlazePose(ProcessEstimator, PoseBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(BlazePoseOptions):
-        variant: Literal["full", "heavy"] = "full"  # landmark model: full (18 ms a frame on 1 thread) or heavy (36 ms; MediaPipe's most accurate); registry keys pose_landmark_<variant>
-        min_visibility: float = param(0.5, minimum=0, maximum=1)  # landmark visibility below which a joint is NaN and left out of the 2D fit
-        head_top_height: float = param(0.12, minimum=0)  # metres from the ear midpoint up to the head top (BlazePose has no head-top landmark)
-        ray_alignment: bool = True  # turn the world landmarks so their z is the ray through the visible landmarks (the model sees the person along it); false: MediaPipe's image-aligned axes
-        depth_refine: bool = True  # take the pose's distance (metres) from the depth map at the visible landmarks, body joints 5 cm behind the measured surface: the world landmarks have an average adult's size, so the 2D fit alone is off by the size error times the distance (10% is 30 cm at 3 m); false: the 2D fit only (the map is still passed)
+        variant: Literal["full", "heavy"] = (
+            # landmark model: full (18 ms a frame on 1 thread) or heavy (36 ms;
+            # MediaPipe's most accurate); registry keys pose_landmark_<variant>
+            "full")
+        min_visibility: float = param(
+            0.5, minimum=0, maximum=1)  # landmark visibility below which a joint is NaN and left out of the 2D fit
+        head_top_height: float = param(
+            0.12, minimum=0)  # metres from the ear midpoint up to the head top (BlazePose has no head-top landmark)
+        ray_alignment: bool = (
+            # turn the world landmarks so their z is the ray through the visible landmarks
+            # (the model sees the person along it); false: MediaPipe's image-aligned axes
+            True)
+        depth_refine: bool = (
+            # take the pose's distance (metres) from the depth map at the visible landmarks, body joints 5 cm behind
+            # the measured surface: the world landmarks have an average adult's size, so the 2D fit alone is off by the
+            # size error times the distance (10% is 30 cm at 3 m); false: the 2D fit only (the map is still passed)
+            True)
 
     def registry_keys(self) -> tuple[str, ...]:
         return "pose_detection", f"pose_landmark_{self.p.variant}"

@@ -75,7 +75,9 @@ class OnnxPose(CropPose):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(CropPoseOptions, RuntimeParams):
-        model: Path = param(file="model", hint=EXPORT_HINT)  # the crop model ONNX: image [N,S,S,3], intrinsics [N,3,3] -> poses3d [N,J,3] mm in the crop camera
+        model: Path = param(
+            # the crop model ONNX: image [N,S,S,3], intrinsics [N,3,3] -> poses3d [N,J,3] mm in the crop camera
+            file="model", hint=EXPORT_HINT)
 
     def load_model(self):
         from ..estimators.crop_pose import OnnxCropModel
@@ -92,7 +94,9 @@ class TorchScriptPose(CropPose):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(CropPoseOptions):
-        model: Path = param(file="model", hint=EXPORT_HINT)  # the crop model TorchScript: forward(image [N,S,S,3], intrinsics [N,3,3]) -> [N,J,3] mm in the crop camera
+        model: Path = param(
+            # the crop model TorchScript: forward(image [N,S,S,3], intrinsics [N,3,3]) -> [N,J,3] mm in the crop camera
+            file="model", hint=EXPORT_HINT)
         device: str = "cpu"  # torch device: cpu, or cuda / cuda:N where this torch build has CUDA
         threads: int = param(2, minimum=1)  # torch intra-op threads (torch.set_num_threads, process-wide)
 

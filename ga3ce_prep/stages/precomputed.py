@@ -13,14 +13,15 @@ maps larger than memory works. A frame missing from the file raises FrameError f
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from ..errors import ConfigError, FrameError
 
-_tables: dict[tuple[str, str, int], "PrecomputedTable"] = {}
+_tables: dict[tuple[str, str, int], PrecomputedTable] = {}
 _lock = threading.Lock()
 
 

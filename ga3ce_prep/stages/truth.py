@@ -24,7 +24,9 @@ _lock = threading.Lock()
 class TruthParams:
     """The parameter of every `oracle` backend."""
 
-    truth: Path = param("{data}/truth.h5", file="data", hint=TRUTH_HINT)  # the synthetic world's truth side-car; {data} is the --data root
+    truth: Path = param(
+        # the synthetic world's truth side-car; {data} is the --data root
+        "{data}/truth.h5", file="data", hint=TRUTH_HINT)
 
 
 def _reader(path: str | Path) -> Any:

@@ -41,7 +41,9 @@ class PrecomputedView(ViewBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        file: Path = param(file="data", hint="write it with the layout in docs/pipeline.md (frame_id, view)")  # HDF5/npz: frame_id (N,) str, view (N, 3)
+        file: Path = param(
+            # HDF5/npz: frame_id (N,) str, view (N, 3)
+            file="data", hint="write it with the layout in docs/pipeline.md (frame_id, view)")
 
     def _table(self):
         return precomputed_table(self.p.file, "view", (3,), "stages.view.params.file")
@@ -67,7 +69,9 @@ class OracleView(ViewBackend):
     class Params(TruthParams):
         seed: int = 0  # noise seed (combined with the frame id)
         mean_error_deg: float = param(20.0, minimum=0, maximum=90)  # mean angle between v and the truth gaze, degrees
-        head_weight: float = param(0.0, minimum=0, maximum=1)  # pull of v toward the truth head direction before the noise (0: none, 1: centred on it)
+        head_weight: float = param(
+            # pull of v toward the truth head direction before the noise (0: none, 1: centred on it)
+            0.0, minimum=0, maximum=1)
 
     def check(self) -> None:
         check_truth_file(self.p.truth)
@@ -99,7 +103,9 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(FaceMeshOptions):
-        pose_fallback: bool = True  # no face visible: v = the pose's head direction (ears to nose); false: the frame fails
+        pose_fallback: bool = (
+            # no face visible: v = the pose's head direction (ears to nose); false: the frame fails
+            True)
 
     def registry_keys(self) -> tuple[str, ...]:
         return "face_detection", "face_landmark"  # BlazeFace short-range, the face mesh
@@ -137,10 +143,16 @@ class GFIEView(ProcessEstimator, ViewBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params:
-        checkpoint: Path = param(file="model", hint=GFIE_HINT)  # GFIE's checkpoint (a dict with the whole GFIENet's state_dict); only its head network, egd_module.*, is read
+        checkpoint: Path = param(
+            # GFIE's checkpoint (a dict with the whole GFIENet's
+            # state_dict); only its head network, egd_module.*, is read
+            file="model", hint=GFIE_HINT)
         device: Literal["cpu", "cuda"] = "cpu"  # torch device of the network
         threads: int = param(1, minimum=1)  # torch intra-op threads per process
-        batch_size: int = param(8, minimum=1)  # heads per forward pass (a shard's frames in chunks): on a GPU raise it; on a CPU 8 already amortises the per-call overhead
+        batch_size: int = param(
+            # heads per forward pass (a shard's frames in chunks): on a GPU
+            # raise it; on a CPU 8 already amortises the per-call overhead
+            8, minimum=1)
 
     def batch_size(self) -> int:
         return self.p.batch_size
@@ -187,7 +199,8 @@ class OnnxView(ProcessEstimator, ViewBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(HeadOnnxOptions):
-        model: Path = param(file="model", hint=ONNX_HINT)  # the ONNX file: one float32 image input, a (1, 3) direction output
+        model: Path = param(
+            file="model", hint=ONNX_HINT)  # the ONNX file: one float32 image input, a (1, 3) direction output
 
     def check(self) -> None:
         """Before any work: the axes, the providers and the file's interface."""
@@ -216,7 +229,9 @@ class GafaView(ProcessEstimator, ViewBackend):
 
     @dataclass(frozen=True, kw_only=True)
     class Params(RuntimeParams):
-        model: Path = param(file="model", hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models.md)")  # ONNX of GAFA's GazeNet (7 frames): image, head_mask, body_dv -> gaze
+        model: Path = param(
+            # ONNX of GAFA's GazeNet (7 frames): image, head_mask, body_dv -> gaze
+            file="model", hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models.md)")
 
     def check(self) -> None:
         """Before any work: the providers and the file's interface (GazeNet's inputs and output)."""

@@ -115,7 +115,8 @@ def sample_camera(rng: np.random.Generator, cfg: CameraConfig, K: np.ndarray, wi
         az = rng.uniform(0, 2 * np.pi) if azimuth is None or i > tries // 2 else azimuth + rng.normal(0, 0.3)
         dist = rng.uniform(*cfg.distance)
         C = np.array([person_xy[0] + dist * np.cos(az), person_xy[1] + dist * np.sin(az), rng.uniform(*cfg.height)])
-        if not (0.15 <= C[0] <= room_size[0] - 0.15 and 0.15 <= C[1] <= room_size[1] - 0.15 and C[2] < room_size[2] - 0.1):
+        if not (0.15 <= C[0] <= room_size[0] - 0.15 and 0.15 <= C[1] <= room_size[1] - 0.15
+                and C[2] < room_size[2] - 0.1):
             continue
         aim = np.array([person_xy[0], person_xy[1], aim_z]) - C
         yaw = np.arctan2(aim[1], aim[0]) + np.radians(rng.uniform(-1, 1) * cfg.yaw_offset)

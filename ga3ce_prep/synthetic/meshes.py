@@ -6,7 +6,7 @@ A mesh is `(vertices (V, 3) float32 metres, triangles (F, 3) int32)`.
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 
@@ -17,7 +17,7 @@ def _from_o3d(m) -> Mesh:
     return np.asarray(m.vertices, np.float64), np.asarray(m.triangles, np.int32)
 
 
-@lru_cache(maxsize=None)
+@cache
 def template(name: str) -> Mesh:
     """A unit template centred at the origin, z up.
 

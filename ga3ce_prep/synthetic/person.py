@@ -186,8 +186,8 @@ def forward_kinematics(body: Body, root: np.ndarray, yaw: float, L: np.ndarray) 
     return p, G
 
 
-def set_head(body: Body, L: np.ndarray, G_thorax: np.ndarray, H: np.ndarray,
-             max_yaw: float = np.radians(80), pitch=(np.radians(-60), np.radians(45))) -> np.ndarray:
+def set_head(body: Body, L: np.ndarray, G_thorax: np.ndarray, H: np.ndarray, max_yaw: float = np.radians(80),
+             pitch=(np.radians(-60), np.radians(45))) -> np.ndarray:  # noqa: B008 - a tuple of floats: immutable
     """Write neck (12) and head (15) rotations into L (in place) so the head's global orientation
     is H (3, 3) given the thorax orientation; the turn relative to the thorax is clamped to
     anatomical limits (yaw within max_yaw, pitch within `pitch`, rad). Returns the head orientation

@@ -35,7 +35,7 @@ class View:
     albedo_lum: np.ndarray
     shiny: np.ndarray
 
-    def copy(self) -> "View":
+    def copy(self) -> View:
         return View(self.depth.copy(), self.instance.copy(), self.rgb.copy(), self.albedo_lum.copy(), self.shiny.copy())
 
 
@@ -103,7 +103,8 @@ def shade(albedo: np.ndarray, normal: np.ndarray, view_dir: np.ndarray, points: 
     fill = np.abs(ndv)
     phase = (f32(2 * np.pi) * tex_freq.astype(f32, copy=False)) * np.einsum("ij,ij->i", points.astype(f32, copy=False),
                                                                            tex_dir.astype(f32, copy=False))
-    lum = (f32(cfg.ambient) + f32(cfg.diffuse) * diffuse + f32(cfg.fill) * fill) * (f32(1) + f32(cfg.texture) * np.sin(phase))
+    lum = ((f32(cfg.ambient) + f32(cfg.diffuse) * diffuse + f32(cfg.fill) * fill)
+           * (f32(1) + f32(cfg.texture) * np.sin(phase)))
     rgb = albedo.astype(f32, copy=False) * lum[:, None]
     if shiny.any():
         n = nrm * sign[:, None]

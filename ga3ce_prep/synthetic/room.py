@@ -124,7 +124,8 @@ class _Builder:
     def shell(self, sx: float, sy: float, h: float) -> None:
         rng = self.rng
         floor_col = _colour(rng, (0.1, 0.5), (0.25, 0.6))
-        self.add("structure", "floor", meshes.quad([(0, 0, 0), (sx, 0, 0), (sx, sy, 0), (0, sy, 0)]), floor_col, max(sx, sy))
+        self.add("structure", "floor", meshes.quad([(0, 0, 0), (sx, 0, 0), (sx, sy, 0), (0, sy, 0)]), floor_col,
+                 max(sx, sy))
         wall_col = _colour(rng, (0.05, 0.3), (0.6, 0.9))
         for a, b in (((0, 0), (sx, 0)), ((sx, 0), (sx, sy)), ((sx, sy), (0, sy)), ((0, sy), (0, 0))):
             q = meshes.quad([(a[0], a[1], 0), (b[0], b[1], 0), (b[0], b[1], h), (a[0], a[1], h)])
@@ -219,10 +220,12 @@ class _Builder:
         along_x = abs(np.sin(yaw)) > 0.5  # wall 0 or 2: width along x
         if along_x:
             parts += [meshes.box((x0, y0, 0), (x0 + t, y1, h)), meshes.box((x1 - t, y0, 0), (x1, y1, h))]
-            parts.append(meshes.box((x0, y0, 0), (x1, y0 + t, h)) if yaw > 0 else meshes.box((x0, y1 - t, 0), (x1, y1, h)))
+            parts.append(meshes.box((x0, y0, 0), (x1, y0 + t, h)) if yaw > 0
+                         else meshes.box((x0, y1 - t, 0), (x1, y1, h)))
         else:
             parts += [meshes.box((x0, y0, 0), (x1, y0 + t, h)), meshes.box((x0, y1 - t, 0), (x1, y1, h))]
-            parts.append(meshes.box((x1 - t, y0, 0), (x1, y1, h)) if abs(yaw) > 1 else meshes.box((x0, y0, 0), (x0 + t, y1, h)))
+            parts.append(meshes.box((x1 - t, y0, 0), (x1, y1, h)) if abs(yaw) > 1
+                         else meshes.box((x0, y0, 0), (x0 + t, y1, h)))
         col = _colour(rng, (0.1, 0.5), (0.2, 0.85))
         self.add("furniture", "shelf", meshes.merge(parts), col, max(w, h))
         for i, z in enumerate(zs):

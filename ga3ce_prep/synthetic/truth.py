@@ -112,7 +112,8 @@ class TruthWriter:
         self.W, self.H = width, height
         # lzf (bundled with h5py): 40% less writing time than gzip 1 for 20% larger files
         kw = dict(chunks=(1, height, width), compression="lzf", shuffle=True)
-        self.depth = self.f.create_dataset("depth", (0, height, width), np.float32, maxshape=(None, height, width), **kw)
+        self.depth = self.f.create_dataset("depth", (0, height, width), np.float32,
+                                           maxshape=(None, height, width), **kw)
         self.instance = self.f.create_dataset("instance", (0, height, width), np.int16, maxshape=(None, height, width),
                                               fillvalue=-1, **kw)
         base = {"format": "", "truth_version": TRUTH_VERSION, "width": width, "height": height,
@@ -133,7 +134,8 @@ class TruthWriter:
         self.instance.resize(n + 1, axis=0)
         self.depth[n] = fr.depth
         self.instance[n] = fr.instance
-        self.rows.append(TruthFrame(**{f.name: getattr(fr, f.name) for f in fields(TruthFrame) if f.name not in ("depth", "instance")}))
+        self.rows.append(TruthFrame(**{f.name: getattr(fr, f.name) for f in fields(TruthFrame)
+                                       if f.name not in ("depth", "instance")}))
 
     def close(self) -> None:
         if self.f is None:
@@ -150,7 +152,8 @@ class TruthWriter:
             g.create_dataset(name, data=data)
         counts = np.array([len(r.objects.instance) for r in rows], np.int32)
         g.create_dataset("obj_count", data=counts)
-        g.create_dataset("obj_start", data=np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if rows else np.zeros(0, np.int64))
+        g.create_dataset("obj_start", data=np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+                         if rows else np.zeros(0, np.int64))
         og = self.f.require_group("objects")
         for name, dt in _OBJ.items():
             parts = [np.asarray(getattr(r.objects, name), dt) for r in rows]
@@ -159,7 +162,7 @@ class TruthWriter:
         self.f.close()
         self.f = None
 
-    def __enter__(self) -> "TruthWriter":
+    def __enter__(self) -> TruthWriter:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -258,7 +261,7 @@ class TruthReader:
     def close(self) -> None:
         self.f.close()
 
-    def __enter__(self) -> "TruthReader":
+    def __enter__(self) -> TruthReader:
         return self
 
     def __exit__(self, *exc) -> None:

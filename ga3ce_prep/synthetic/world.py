@@ -12,14 +12,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import gaze as gz
 from ..errors import ConfigError
 from ..geometry import project, scale_intrinsics
+from . import gaze as gz
 from .camera import Camera, ellipsoid_bbox, sample_camera
 from .config import POSTURES, SynthConfig
 from .noise import NoiseBank
-from .person import Body, EYES, forward_kinematics, head_ellipsoid, head_frame, make_body, person_mesh, \
-    posture_rotations, reach_arm, set_head
+from .person import (
+    EYES,
+    Body,
+    forward_kinematics,
+    head_ellipsoid,
+    head_frame,
+    make_body,
+    person_mesh,
+    posture_rotations,
+    reach_arm,
+    set_head,
+)
 from .render import PersonScene, StaticScene, View, render_person, render_static
 from .room import GRID, KINDS, SHAPE_CODES, Room, build_room
 from .targets import OBJECT, SPACE, Target, TargetSampler
@@ -74,7 +84,7 @@ class Scene:
         w = np.array([pc.postures[n] for n in names], float)
         self.posture = names[int(rng.choice(len(names), p=w / w.sum()))]
         self.body: Body = make_body(float(rng.uniform(*pc.height)), rng)
-        for attempt in range(8):
+        for _attempt in range(8):
             room = build_room(cfg, rng, sitting=self.posture == "sitting")
             if self.posture == "sitting" and room.seat is None:
                 self.posture = "standing"
@@ -104,7 +114,8 @@ class Scene:
         found = None
         for _ in range(6):
             if self.posture == "sitting":
-                home, heading = room.seat.xy - 0.08 * np.array([np.cos(room.seat.yaw), np.sin(room.seat.yaw)]), room.seat.yaw
+                home, heading = (room.seat.xy - 0.08 * np.array([np.cos(room.seat.yaw), np.sin(room.seat.yaw)]),
+                                 room.seat.yaw)
             else:
                 iy, ix = np.nonzero(room.free)
                 if not len(iy):
@@ -323,7 +334,8 @@ class Scene:
             if 0 <= u < W and 0 <= v < H:
                 z = float(view.depth[v, u])
                 if step.target.kind == OBJECT:
-                    visible = bool(view.instance[v, u] == step.target.instance and abs(z - tgt[2]) < 0.01 + 0.01 * tgt[2])
+                    visible = bool(view.instance[v, u] == step.target.instance
+                                   and abs(z - tgt[2]) < 0.01 + 0.01 * tgt[2])
                 else:
                     visible = z == 0 or z > tgt[2]
         insts = self.room.instances

@@ -127,7 +127,8 @@ class GFIEWriter(FormatWriter):
         i, t, tr = ctx.scene_index, ctx.t, ctx.truth
         folder = self.FOLDER[self.splits[i]]
         rel = Path(folder) / f"scene{self.number[i]}" / f"{t:04d}"
-        _imwrite(self.out / "rgb" / rel.with_suffix(".jpg"), ctx.rgb, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.render.jpeg_quality])
+        _imwrite(self.out / "rgb" / rel.with_suffix(".jpg"), ctx.rgb,
+                 [cv2.IMWRITE_JPEG_QUALITY, self.cfg.render.jpeg_quality])
         d = np.where(ctx.depth > 0, ctx.depth, np.nan).astype(np.float32)
         p = self.out / "depth" / rel.with_suffix(".npy")
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -267,7 +268,7 @@ class GAFAWriter(FormatWriter):
 
     def end_scene(self, i):
         for c, a in sorted(self.acc.items()):
-            f32 = lambda k: np.asarray(np.stack(a[k]), np.float32)  # noqa: E731
+            f32 = lambda k, a=a: np.asarray(np.stack(a[k]), np.float32)  # noqa: E731
             d = {"keypoints2d": f32("kp"), "gaze": {"direction": f32("gaze")},
                  "head": {"direction": f32("head_d"), "position": f32("head_p")},
                  "chest": {"direction": f32("chest_d"), "position": f32("chest_p")},

@@ -26,6 +26,7 @@ from ..estimators.amg import preprocess_shape
 from ..estimators.mobilesam import PIXEL_MEAN, PIXEL_STD
 from ..estimators.onnx_graph import GraphBuilder
 
+
 def _pool_to_embedding(g: GraphBuilder, x: str) -> str:
     pooled = g.op("AveragePool", x, kernel_shape=[16, 16], strides=[16, 16])     # (1, 3, 64, 64)
     w = np.zeros((256, 3, 1, 1), np.float32)
@@ -44,7 +45,8 @@ def pooling_encoder(form: str = "normalised", input_name: str | None = None, siz
         x = g.transpose(g.div(g.sub(img, g.const(PIXEL_MEAN)), g.const(PIXEL_STD)), [2, 0, 1])   # (3, H, W)
         hw = g.slice(g.op("Shape", x), [1], [3], [0])
         pad_hw = g.sub(g.const([1024, 1024], dtype=np.int64), hw)
-        pads = g.concat([g.const([0, 0, 0], dtype=np.int64), g.const([0], dtype=np.int64), pad_hw], axis=0)   # end (0, ph, pw)
+        # begin (0, 0, 0), end (0, ph, pw)
+        pads = g.concat([g.const([0, 0, 0], dtype=np.int64), g.const([0], dtype=np.int64), pad_hw], axis=0)
         x = g.op("Unsqueeze", g.op("Pad", x, pads), g.const([0], dtype=np.int64))
     else:
         raise ValueError(f"form must be 'normalised' or 'preprocess', got {form!r}")
@@ -157,8 +159,9 @@ def renamed(model: onnx.ModelProto, names: dict[str, str]) -> onnx.ModelProto:
 
 
 def drawn_frame(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
-    """A (h, w, 3) uint8 RGB test frame (the MobileSAM benchmark's): an RGB gradient with filled rectangles, an ellipse, a ring, a triangle and
-    a diagonal line, Gaussian noise sigma 4 (like the frame the official generator was timed on)."""
+    """A (h, w, 3) uint8 RGB test frame (the MobileSAM benchmark's): an RGB gradient with filled
+    rectangles, an ellipse, a ring, a triangle and a diagonal line, Gaussian noise sigma 4 (like the
+    frame the official generator was timed on)."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:h, 0:w]
     img = np.stack([x * 255.0 / w, y * 255.0 / h, np.full((h, w), 128.0)], -1).astype(np.float32)

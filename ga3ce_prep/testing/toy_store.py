@@ -187,7 +187,8 @@ def toy_world(n_frames: int, seed: int = 0, frames_per_scene: int = 40, knobs: T
         "id": [f"toy/{seed}/{i:06d}" for i in range(n)], "split": split_of_scene[scene], "scene": scene,
         "K": np.broadcast_to(Kmat, (n, 3, 3)), "image_size": np.tile([640, 480], (n, 1)),
         "head_box": head_box, "body_box": body_box, "head_pos": head_pos, "pose": pose,
-        "view": view, "view_source": np.zeros(n, np.int8), "head_source": np.zeros(n, np.int8), "gaze": gaze, "eye": eye, "gaze_target": target,
+        "view": view, "view_source": np.zeros(n, np.int8), "head_source": np.zeros(n, np.int8),
+        "gaze": gaze, "eye": eye, "gaze_target": target,
         "obj_count": count,
     }
     m = int(count.sum())

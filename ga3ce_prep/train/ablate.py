@@ -51,7 +51,8 @@ ABLATIONS: tuple[Ablation, ...] = (
              ("x", "x", "x*"), None, 18.9, 21.2),
     Ablation("full", "GA3CE (full)", {}, ("x", "x", "x"), ("x", "x", "x"), 11.1, 19.9),
     Ablation("no-egocentric", "no egocentric transform", {"rotation": "none"}, None, ("-", "-", "x"), 14.2, 20.8),
-    Ablation("no-cyclotorsion", "no cyclotorsion (axis-angle)", {"rotation": "axis_angle"}, None, ("x", "-", "x"), 12.1, 20.1),
+    Ablation("no-cyclotorsion", "no cyclotorsion (axis-angle)", {"rotation": "axis_angle"}, None, ("x", "-", "x"),
+             12.1, 20.1),
     Ablation("no-d3", "no D3 (standard encoding)", {"encoding": "standard"}, None, ("x", "x", "-"), 12.9, 20.9),
     Ablation("regress", "the paper's output (regress)", {"output": "regress"}, None, None, None, None),
 )

@@ -19,14 +19,17 @@ from ..errors import ConfigError
 from ..model import ENCODINGS, ROTATIONS, ModelConfig
 from ..params import field_docs
 from ..store import ContextStore, open_store
-from .ablate import ABLATIONS, BY_NAME, ablate as run_ablate
+from .ablate import ABLATIONS, BY_NAME
+from .ablate import ablate as run_ablate
 from .dataset import ContextDataset
 from .distributed import Ranks
-from .evaluate import evaluate as run_eval, format_eval_table
+from .evaluate import evaluate as run_eval
+from .evaluate import format_eval_table
 from .frameset import PROTOCOLS
 from .profiles import PROFILES, DatasetProfile
 from .report import report as run_report
-from .trainer import TrainConfig, train as run_train
+from .trainer import TrainConfig
+from .trainer import train as run_train
 
 NOT_RECIPE = ("store", "out", "model")  # each command's own options; the model: --model-set (and train's choices)
 
@@ -38,8 +41,8 @@ def _n_max(value: str, store: str) -> int | None:
         return DatasetProfile.for_store(open_store(store)).n_max
     try:
         return int(value)
-    except ValueError:
-        raise click.BadParameter(f"{value!r}: use batch, auto or a number of object slots", param_hint="--n-max")
+    except ValueError as e:
+        raise click.BadParameter(f"{value!r}: use batch, auto or a number of object slots", param_hint="--n-max") from e
 
 
 def _model_sets(items: tuple[str, ...]) -> dict[str, Any]:
@@ -84,7 +87,8 @@ def _recipe_option(f: dataclasses.Field, hint: Any) -> Callable:
                             help=f"Object slots per frame: batch (the batch's largest count), auto (the dataset's "
                             f"N_max: {auto}) or a number; frames with more keep their largest masks.")
     if hint is bool:
-        return click.option(f"{opt}/--no-{opt[2:]}", default=default, show_default=True, help=_help(TrainConfig, f.name))
+        return click.option(f"{opt}/--no-{opt[2:]}", default=default, show_default=True,
+                            help=_help(TrainConfig, f.name))
     if typing.get_origin(hint) is Literal:
         hint = click.Choice(typing.get_args(hint))
     elif default is None:  # X | None
@@ -97,9 +101,11 @@ def recipe_options(f: Callable) -> Callable:
     """The training recipe's options, shared by train and ablate: one per TrainConfig field, and
     --model-set for any ModelConfig field."""
     hints = typing.get_type_hints(TrainConfig)
-    opts = [_recipe_option(fld, hints[fld.name]) for fld in dataclasses.fields(TrainConfig) if fld.name not in NOT_RECIPE]
+    opts = [_recipe_option(fld, hints[fld.name]) for fld in dataclasses.fields(TrainConfig)
+            if fld.name not in NOT_RECIPE]
     opts.append(click.option("--model-set", multiple=True, metavar="KEY=VALUE",
-                             help="Set any ModelConfig field, e.g. --model-set object_distance_scale=0.5 (repeatable)."))
+                             help="Set any ModelConfig field, e.g. --model-set object_distance_scale=0.5 "
+                                  "(repeatable)."))
     for o in reversed(opts):
         f = o(f)
     return f
@@ -124,7 +130,8 @@ def _log_setup() -> None:
 @click.option("--encoding", type=click.Choice(ENCODINGS), default=ModelConfig().encoding, show_default=True,
               help=_help(ModelConfig, "encoding"))
 @recipe_options
-@click.option("--resume", is_flag=True, help="Continue the run in --out from last.pt (refused if the store or options changed).")
+@click.option("--resume", is_flag=True,
+              help="Continue the run in --out from last.pt (refused if the store or options changed).")
 @click.option("--force", is_flag=True, help="Overwrite an existing run, or resume despite a store/config mismatch.")
 @click.pass_context
 def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_set, **recipe):
@@ -161,9 +168,12 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
 @click.option("--split", default="test", show_default=True, help="Split to evaluate: train, val or test.")
 @click.option("--json", "json_path", default=None, help="Also write every number as JSON to this file.")
 @click.option("--cdf", default="auto", show_default=True,
-              help="PNG of the angular-error CDF (model vs v prior); auto = eval_<split>_cdf.png beside the checkpoint; 'none' for no plot.")
-@click.option("--snap-cone", type=float, default=None, help="Cone half-angle (degrees) of the snap-to-object baseline; default: chosen on the val split.")
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the model.")
+              help="PNG of the angular-error CDF (model vs v prior); auto = eval_<split>_cdf.png beside the "
+              "checkpoint; 'none' for no plot.")
+@click.option("--snap-cone", type=float, default=None,
+              help="Cone half-angle (degrees) of the snap-to-object baseline; default: chosen on the val split.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True,
+              help="Where to run the model.")
 @click.option("--batch-size", default=256, show_default=True, help="Frames per inference batch.")
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
 @click.option("--no-scenes", is_flag=True, help="Leave out the per-scene table.")
@@ -173,10 +183,12 @@ def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_se
 @click.option("--data", default=None, type=click.Path(file_okay=False),
               help="The dataset's root, when it is no longer where the store's provenance says (the split's rows, "
               "and with --gfm the images and depth, are read from it).")
-@click.option("--force", is_flag=True, help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset).")
+@click.option("--force", is_flag=True,
+              help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset).")
 @click.option("--gfm", "gfm", default=None, metavar="CHECKPOINT",
-              help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns (AUC, L2, 3D distance, 3D angle) "
-              "for GFIE, Ours and Ours + GFM, from the frames' images and depth (GFIE or CAD-120 stores).")
+              help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns "
+              "(AUC, L2, 3D distance, 3D angle) for GFIE, Ours and Ours + GFM, from the frames' images and depth "
+              "(GFIE or CAD-120 stores).")
 @click.option("--gfm-batch-size", default=16, show_default=True, help="With --gfm: frames per pass of GFIE's network.")
 @click.option("--no-objects", "no_objects", default="auto", show_default=True, metavar="auto|none|CHECKPOINT",
               help="A checkpoint of the model without objects to score beside this one (what the objects add); auto = "
@@ -195,9 +207,9 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
     gaze-following modules").
     """
     _log_setup()
-    r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device, batch_size=batch_size,
-                 snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf, json_path=json_path,
-                 threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size,
+    r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device,
+                 batch_size=batch_size, snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf,
+                 json_path=json_path, threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size,
                  no_objects=None if no_objects == "none" else no_objects)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
     if "cdf_png" in r:
@@ -210,7 +222,8 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
 @click.option("--store", required=True, help="The store every ablation trains and tests on.")
 @click.option("--out", required=True, help="Folder for the runs (OUT/<row>/seed<k>) and ablation.{json,csv,png}.")
 @click.option("--rows", default=None, help="Comma-separated rows to run (default all): " + ", ".join(BY_NAME) + ".")
-@click.option("--seeds", default="0", show_default=True, help="Comma-separated seeds; the table shows mean +- std over them.")
+@click.option("--seeds", default="0", show_default=True,
+              help="Comma-separated seeds; the table shows mean +- std over them.")
 @click.option("--split", default="test", show_default=True, help="Split the rows are evaluated on.")
 @recipe_options
 @click.option("--force", is_flag=True, help="Retrain every row even if its run folder is complete.")
@@ -236,12 +249,15 @@ def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
 
 @click.command()
 @click.argument("run_dir")
-@click.option("--store", default=None, help="The store to evaluate and draw on; default: the one RUN_DIR/config.json names.")
+@click.option("--store", default=None,
+              help="The store to evaluate and draw on; default: the one RUN_DIR/config.json names.")
 @click.option("--split", default="test", show_default=True, help="Split to evaluate and draw frames from.")
 @click.option("--out", default=None, help="Folder of the page (index.html) and its PNGs; default: RUN_DIR/report.")
 @click.option("--frames", default=8, show_default=True, help="Frames in the qualitative grid and the attention figure.")
-@click.option("--data", default=None, help="The dataset folder with the frames' images; default: the one the store records.")
-@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the model.")
+@click.option("--data", default=None,
+              help="The dataset folder with the frames' images; default: the one the store records.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True,
+              help="Where to run the model.")
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
 @click.option("--force", is_flag=True, help="Report on a store other than the one the checkpoint was trained on.")
 def report(run_dir, store, split, out, frames, data, device, threads, force):

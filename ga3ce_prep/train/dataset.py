@@ -10,10 +10,11 @@ frame has more. `ContextDataset.batch(indices)` builds the same Batch straight f
 counts so per-batch padding stays small.
 
 Frames with no finite view prior are left out; frames with unknown gaze are left out when
-`require_gaze` (training, evaluation); `left_out` keeps their store rows by reason. Objects with non-finite positions, and every object of
-a frame whose head position t_object is not finite, are dropped at load, so such a frame is a valid
-sample with zero objects (the model's null token). Missing pose joints stay NaN (the model's
-missing-joint policy handles them: ga3ce_prep/model/egocentric.py).
+`require_gaze` (training, evaluation); `left_out` keeps their store rows by reason. Objects with
+non-finite positions, and every object of a frame whose head position t_object is not finite, are
+dropped at load, so such a frame is a valid sample with zero objects (the model's null token).
+Missing pose joints stay NaN (the model's missing-joint policy handles them:
+ga3ce_prep/model/egocentric.py).
 """
 from __future__ import annotations
 
@@ -50,10 +51,10 @@ class Batch:
     mask: torch.Tensor
     index: torch.Tensor
 
-    def to(self, device: str | torch.device) -> "Batch":
+    def to(self, device: str | torch.device) -> Batch:
         return Batch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
-    def rows(self, sl: slice) -> "Batch":
+    def rows(self, sl: slice) -> Batch:
         """Frames `sl` of the batch, with the same object slots."""
         return Batch(**{f.name: getattr(self, f.name)[sl] for f in fields(self)})
 
@@ -152,7 +153,8 @@ class ContextDataset(Dataset):
         slot = np.arange(S)
         mask = slot[None, :] < count[:, None]
         src = np.where(mask, self.obj_start[idx][:, None] + slot[None, :], 0)
-        objects = self.xyz[src.ravel()].reshape(len(idx), S, 3) if len(self.xyz) else np.zeros((len(idx), S, 3), np.float32)
+        objects = (self.xyz[src.ravel()].reshape(len(idx), S, 3) if len(self.xyz)
+                   else np.zeros((len(idx), S, 3), np.float32))
         objects = objects * mask[..., None]
         return Batch(view=torch.from_numpy(self.view[idx]), pose=torch.from_numpy(self.pose[idx]),
                      head_pos=torch.from_numpy(self.head_pos[idx]), gaze=torch.from_numpy(self.gaze[idx]),

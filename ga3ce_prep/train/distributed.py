@@ -27,7 +27,7 @@ class Ranks:
     local: int = 0
 
     @classmethod
-    def from_env(cls) -> "Ranks":
+    def from_env(cls) -> Ranks:
         """The place torchrun gives this process (RANK, WORLD_SIZE, LOCAL_RANK); 0 of 1 without it."""
         env = os.environ
         return cls(int(env.get("RANK", "0")), int(env.get("WORLD_SIZE", "1")), int(env.get("LOCAL_RANK", "0")))

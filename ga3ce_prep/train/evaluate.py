@@ -126,7 +126,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     if no_objects is not None:
         other = load_checkpoint(no_objects)
         check_checkpoint(other, no_objects, store_fingerprint(st), None, force=force)
-        preds["no_objects"] = predict(build_model(other).to(device), ds, batch_size, device, other["config"].get("n_max"))
+        preds["no_objects"] = predict(build_model(other).to(device), ds, batch_size, device,
+                                      other["config"].get("n_max"))
     preds["view_prior"] = ds.view
     preds["head_from_pose"], pose_ok = head_direction_from_pose(ds.pose, ds.view)
     if snap_cone_deg is None:
@@ -187,8 +188,10 @@ def format_accounting(result: dict[str, Any]) -> list[str]:
     label = PROTOCOLS[fr["protocol"]]
     if fr["protocol"] == "all" and result.get("dataset") == "gafa":
         label += ", NOT GAFA's protocol (its 7-frame windows: --frames windows)"
-    within = f" ({fr['expected']} of the split's {fr['split_rows']} frames)" if fr["expected"] != fr["split_rows"] else ""
-    lines = [f"scored {fr['scored']} of {fr['expected']} {result['split']} frames: {label}{within}; rows from {fr['source']}"]
+    within = (f" ({fr['expected']} of the split's {fr['split_rows']} frames)"
+              if fr["expected"] != fr["split_rows"] else "")
+    lines = [f"scored {fr['scored']} of {fr['expected']} {result['split']} frames: {label}{within}; "
+             f"rows from {fr['source']}"]
     for reason, ids in fr["unscored"].items():
         lines.append(f"  {len(ids):6d} not scored: {reason} (e.g. {ids[0]})")
     hs = result.get("head_sources", {})
@@ -203,7 +206,8 @@ def format_scene_table(result: dict[str, Any]) -> list[str]:
     paper's rows beside them (unknown cells '-')."""
     m, cols = result["methods"], result["scene_columns"]
     w = 13
-    lines = ["per scene: 3D / 2D MAE (deg); All over frames", f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
+    lines = ["per scene: 3D / 2D MAE (deg); All over frames",
+             f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
     for key, label in METHODS.items():
         if key not in m:
             continue
@@ -213,7 +217,8 @@ def format_scene_table(result: dict[str, Any]) -> list[str]:
     for label, cells in result.get("paper_rows", {}).items():
         row = [_cell(*cells[c]) if c in cells else _cell(None, None) for c in [*cols, "All"]]
         lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in row))
-    lines.append(f"{'frames':34s} " + " ".join(f"{n:>{w}d}" for n in [*(m['model']['per_scene'][c]['n'] for c in cols), m['model']['n']]))
+    lines.append(f"{'frames':34s} "
+                 + " ".join(f"{n:>{w}d}" for n in [*(m['model']['per_scene'][c]['n'] for c in cols), m['model']['n']]))
     if result.get("paper_rows"):
         lines.append("(GA3CE (paper): Table 3's per-scene cells are not in our sources, '-'; its All 3D is the full "
                      "model of Tables 4/5. GAFA's README: its released GazeNet, averaged per batch of 32 windows; "
@@ -227,7 +232,8 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
     lines = [f"{result['store']} | split {result['split']} | {result['n_frames']} frames | "
              f"{result['checkpoint']} (epoch {result['epoch']})", *format_accounting(result), ""]
     per_window = " (front/back per window)" if result["frames"]["protocol"] == "windows" else ""
-    lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} {'front3D':>7s} {'back3D':>7s}{per_window}")
+    lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} "
+                 f"{'front3D':>7s} {'back3D':>7s}{per_window}")
     for key, label in METHODS.items():
         if key not in m:
             continue
@@ -236,14 +242,16 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
         r = m[key]
         lines.append(f"{label:34s} {_f(r['mae3d']):>7s} {_f(r['mae2d']):>7s} {_f(r['median3d']):>7s} "
                      f"{_f(r['front']['mae3d']):>7s} {_f(r['back']['mae3d']):>7s}")
-    lines.append(f"{'frames':34s} {'':>7s} {'':>7s} {'':>7s} {m['model']['front']['n']:>7d} {m['model']['back']['n']:>7d}")
+    lines.append(f"{'frames':34s} {'':>7s} {'':>7s} {'':>7s} "
+                 f"{m['model']['front']['n']:>7d} {m['model']['back']['n']:>7d}")
     lines.append("")
     lines.append(f"model / v prior = {result['ratio_to_prior']:.3f} (3D MAE); the paper on GFIE: 11.1 / 19.4 = 0.572")
     for key, beats in result["beats"].items():
         d = m[key]["mae3d"] - m["model"]["mae3d"]
         lines.append(f"  {'beats' if beats else 'does NOT beat'} {METHODS[key]}: "
                      f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f}"
-                     + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key]['mae3d']:.0%})" if key == "no_objects" else ")"))
+                     + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key]['mae3d']:.0%})"
+                        if key == "no_objects" else ")"))
     if per_scene and (len(result["scene_columns"]) > 1 or result.get("paper_rows")):
         lines += ["", *format_scene_table(result)]
     if "gfm" in result:

@@ -4,8 +4,9 @@
   frame's 3D context on its image) with the ground-truth gaze (red), ours g (orange) and the view
   prior v (blue) as arrows projected from the head into the image;
 - attention: the weight the model gives each object (`GA3CE.object_weights`: the pointer's p, or
-  the paper's decoder's last-layer cross-attention, mean over heads), projected into the image, the objects above the frame's 95th
-  percentile ringed in red, the gaze target (star) and the true gaze (red arrow) marked;
+  the paper's decoder's last-layer cross-attention, mean over heads), projected into the image, the
+  objects above the frame's 95th percentile ringed in red, the gaze target (star) and the true gaze
+  (red arrow) marked;
 - egocentric space: the 3D context after `egocentric_transform` (v' = z): the objects P'_obj in
   metres (coloured by attention) and the pose P'_pose in head widths, with v', R g_gt and R g.
 
@@ -144,7 +145,8 @@ def plot_attention(store: ContextStore, fr: FigureFrames, path: str | Path, refs
         if np.isfinite(t).all():
             ax.plot(*t, "*", color="red", ms=16, mec="white", label="gaze target")
         fig.colorbar(sc, ax=ax, fraction=0.04, pad=0.01)
-        ax.set_title(f"{ids[i]}\n{int(real.sum())} objects, {'g0' if fr.pointer else 'null token'} {fr.null[k]:.2f}", fontsize=8)
+        ax.set_title(f"{ids[i]}\n{int(real.sum())} objects, {'g0' if fr.pointer else 'null token'} {fr.null[k]:.2f}",
+                     fontsize=8)
         ax.set_xlim(0, img.shape[1])
         ax.set_ylim(img.shape[0], 0)
         ax.axis("off")
@@ -161,7 +163,8 @@ def plot_egocentric(fr: FigureFrames, ds: ContextDataset, model: GA3CE, path: st
     c = model.config
     k = np.unique(np.linspace(0, len(fr.rows) - 1, min(n, len(fr.rows))).round().astype(np.int64))
     b = ds.batch(fr.pos[k])
-    ctx = egocentric_transform(b.view, b.pose, torch.from_numpy(fr.objects[k]), b.head_pos, c.rotation, c.head_width_pair)
+    ctx = egocentric_transform(b.view, b.pose, torch.from_numpy(fr.objects[k]), b.head_pos, c.rotation,
+                               c.head_width_pair)
     R = ctx.R.numpy()
     gt, ours = np.einsum("bij,bj->bi", R, ds.gaze[fr.pos[k]]), np.einsum("bij,bj->bi", R, fr.pred[k])
     v_ego, objs, pose, valid = ctx.view.numpy(), ctx.objects.numpy(), ctx.pose.numpy(), ctx.joint_valid.numpy()

@@ -110,7 +110,8 @@ def scored_frames(store: ContextStore, split: str, protocol: str = "all", data: 
     left = {int(r): reason for reason, rows in ds.left_out.items() for r in rows.tolist()}
     fail = store.failures
     dropped: dict[str, str] = {}  # frame id -> its first dropping failure (records come in stage order)
-    for fid, stage, err, action in zip(*(np.asarray(fail.get(k, [])).tolist() for k in ("frame_id", "stage", "error", "action"))):
+    for fid, stage, err, action in zip(*(np.asarray(fail.get(k, [])).tolist()
+                                         for k in ("frame_id", "stage", "error", "action"))):
         if action == "dropped":
             dropped.setdefault(fid, f"dropped by the {stage} stage ({err})")
     scored: list[int] = []

@@ -155,9 +155,10 @@ def evaluate_gfm(store: ContextStore, rows: np.ndarray, g: np.ndarray, checkpoin
     methods = {}
     for m, vals in per.items():
         a = {k: np.asarray(x, np.float64) for k, x in vals.items()}
-        methods[m] = {"n": len(a["angle3d"]), **{k: _mean(a[k]) for k in METRICS}, "n_auc": int(np.isfinite(a["auc"]).sum())}
-    return {"checkpoint": str(checkpoint), "n_frames": len(ids), "n_scored": len(ids) - len(skipped), "skipped": skipped,
-            "methods": methods}
+        methods[m] = {"n": len(a["angle3d"]), **{k: _mean(a[k]) for k in METRICS},
+                      "n_auc": int(np.isfinite(a["auc"]).sum())}
+    return {"checkpoint": str(checkpoint), "n_frames": len(ids), "n_scored": len(ids) - len(skipped),
+            "skipped": skipped, "methods": methods}
 
 
 def format_gfm_table(r: dict[str, Any]) -> str:

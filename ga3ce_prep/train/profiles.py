@@ -22,10 +22,18 @@ class DatasetProfile:
     view_noise: bool = False  # the paper augments v with noise on this dataset (`--view-noise auto`)
     batch_size: int = 32  # the recipe's frames per batch (TrainConfig.batch_size unset): GFIE 32, GAFA 64
     paper_column: str = "gfie"  # the paper's Tables 4/5 column this dataset's ablations are printed beside
-    appearance_is_v: bool = True  # the paper's "appearance only" row is v itself (so our v prior is its like); False on GAFA: GAFA's own gaze module
+    appearance_is_v: bool = (
+        # the paper's "appearance only" row is v itself (so our v
+        # prior is its like); False on GAFA: GAFA's own gaze module
+        True)
     eval_frames: str = "all"  # the frames `eval` scores by default (train/frameset.py PROTOCOLS): GAFA's "windows"
-    scene_columns: tuple[tuple[str, str], ...] = ()  # the paper's per-scene table: (column, the store scenes' prefix before "/") in its order; (): the store's scenes
-    paper_rows: tuple[tuple[str, tuple[tuple[str, Cell], ...]], ...] = ()  # rows printed beside ours: (label, ((column or "All", (3D, 2D)), ...)); a cell left out is unknown
+    scene_columns: tuple[tuple[str, str], ...] = (
+        # the paper's per-scene table: (column, the store scenes'
+        # prefix before "/") in its order; (): the store's scenes
+        ())
+    paper_rows: tuple[tuple[str, tuple[tuple[str, Cell], ...]], ...] = (
+        # rows printed beside ours: (label, ((column or "All", (3D, 2D)), ...)); a cell left out is unknown
+        ())
 
     @classmethod
     def for_dataset(cls, name: str) -> DatasetProfile:

@@ -133,7 +133,8 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
              _section("Training curves", _img(curves, "training loss and validation 3D MAE per epoch; "
                                                       "the dashed line is the validation v prior")),
              _section("Angular error CDF", _img(Path(result["cdf_png"]), f"per-frame 3D angular error, {split} split")),
-             _section("Per scene", _img(per_scene, "3D MAE per scene and over all frames, the model beside the baselines"))]
+             _section("Per scene", _img(per_scene, "3D MAE per scene and over all frames, "
+                                                   "the model beside the baselines"))]
     if ablation is not None:
         png = plot_ablation(ablation["rows"], out / "ablation.png", ablation["paper_column"])
         parts.append(_section("Ablations (Tables 4 and 5)", _pre(ablation["table"]),
@@ -141,11 +142,14 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
     else:
         parts.append(_section("Ablations", _note(f"{run_dir} holds no ablation (ablation.json): add one with "
                                                  f"`ga3ce-prep ablate --store {store_path} --out {run_dir}`")))
-    parts.append(_section("Qualitative results", _img(figs["qualitative"], "frames from the model's best to its worst error")))
+    parts.append(_section("Qualitative results",
+                          _img(figs["qualitative"], "frames from the model's best to its worst error")))
     parts.append(_section("Decoder attention", _img(figs["attention"], "cross-attention of the subject token over the "
-                                                    "objects; red rings: above the frame's 95th percentile; star: gaze target")
+                                                    "objects; red rings: above the frame's 95th percentile; "
+                                                    "star: gaze target")
                           if "attention" in figs else _note("the appearance-only model (g = v) has no attention")))
-    parts.append(_section("Egocentric space", _img(figs["egocentric"], "the 3D context after the egocentric transform")))
+    parts.append(_section("Egocentric space",
+                          _img(figs["egocentric"], "the 3D context after the egocentric transform")))
     page = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
             f"<title>GA3CE report: {html.escape(run.name)}</title><style>{STYLE}</style></head>"
             f"<body>{''.join(parts)}</body></html>\n")

@@ -48,21 +48,39 @@ class TrainConfig:
     store: str = ""  # the 3D context store to train on (from `ga3ce-prep run`)
     out: str = "runs/ga3ce"  # the run folder
     epochs: int = 20  # training epochs (the paper's 20)
-    batch_size: int | None = None  # frames per batch; unset: the paper's for the store's dataset (DatasetProfile.batch_size: 32 on GFIE and CAD-120, 64 on GAFA, else 32)
+    batch_size: int | None = (
+        # frames per batch; unset: the paper's for the store's dataset
+        # (DatasetProfile.batch_size: 32 on GFIE and CAD-120, 64 on GAFA, else 32)
+        None)
     lr: float = 3e-4  # peak AdamW learning rate, below the paper's: docs/training.md "Learning rate"
     weight_decay: float = 0.1  # AdamW weight decay (the paper's)
     warmup_epochs: float = 4.0  # linear warm-up over this many epochs (stepped per batch), then cosine decay to 0
     grad_clip: float = 0.1  # clip the gradient's global L2 norm to this (the paper's)
-    view_noise: Literal["auto", "on", "off"] = "auto"  # augment v <- normalise(v + eps): on, off, or auto = as the paper on this dataset (DatasetProfile: on for GFIE)
+    view_noise: Literal["auto", "on", "off"] = (
+        # augment v <- normalise(v + eps): on, off, or auto = as the paper on this dataset (DatasetProfile: on for GFIE)
+        "auto")
     view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
-    object_dropout: float = 0.0  # probability of dropping each object token of a training frame (ours, 0 = the paper's recipe): docs/training.md "What the objects add"
-    object_frame_dropout: float = 0.0  # probability of hiding all objects of a training frame (ours, 0 = the paper's recipe): the model also learns to do without them
-    first_pass_loss: float = 1.0  # weight of the arccos loss of the pointer model's first pass g0 (ours; g has weight 1): g0 is trained as the no-objects model it is
-    object_jitter: float = 0.0  # std of Gaussian noise added to each object position in training, metres (ours, 0 = the paper's recipe)
+    object_dropout: float = (
+        # probability of dropping each object token of a training frame (ours,
+        # 0 = the paper's recipe): docs/training.md "What the objects add"
+        0.0)
+    object_frame_dropout: float = (
+        # probability of hiding all objects of a training frame (ours, 0
+        # = the paper's recipe): the model also learns to do without them
+        0.0)
+    first_pass_loss: float = (
+        # weight of the arccos loss of the pointer model's first pass g0
+        # (ours; g has weight 1): g0 is trained as the no-objects model it is
+        1.0)
+    object_jitter: float = (
+        # std of Gaussian noise added to each object position in training, metres (ours, 0 = the paper's recipe)
+        0.0)
     seed: int = 0  # seed of every random draw (same seed, same weights on CPU)
     device: Literal["cpu", "cuda"] = "cpu"  # where to train
     threads: int = 2  # CPU threads of torch (keep at the number of free cores)
-    n_max: int | None = None  # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
+    n_max: int | None = (
+        # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
+        None)
     bucket: bool = True  # group batches by object count (less padding per batch)
     train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
     val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
@@ -88,7 +106,7 @@ class TrainConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
 
@@ -305,7 +323,8 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
 
         # validate, keep the best, checkpoint every epoch, log
         model.eval()
-        val = _mean_angle_deg(predict(model, val_ds, device=device, n_max=config.n_max), val_ds.gaze) if val_ds else float("nan")
+        val = (_mean_angle_deg(predict(model, val_ds, device=device, n_max=config.n_max), val_ds.gaze) if val_ds
+               else float("nan"))
         row = {"epoch": epoch, "step": step, "lr": lr, "train_loss": sum_loss / n_seen,
                "train_mae": float(np.degrees(sum_loss / n_seen)), "val_mae": val,
                "val_prior_mae": prior, "seconds": round(seconds, 2),
