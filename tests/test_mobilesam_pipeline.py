@@ -9,8 +9,9 @@ from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
 from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.geometry import object_positions
 from ga3ce_prep.store import open_store
-from test_mobilesam_models import DEC, ENC
+from ga3ce_prep.testing import mobilesam_random
 
+ENC, DEC = mobilesam_random.ensure()
 PARAMS = {"points_per_side": 3, "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0, "box_nms_thresh": 1.0}
 
 

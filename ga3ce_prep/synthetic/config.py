@@ -157,7 +157,7 @@ class SynthConfig:
     keypoints: KeypointConfig = field(default_factory=KeypointConfig)
 
     @classmethod
-    def for_format(cls, fmt: str) -> "SynthConfig":
+    def for_format(cls, fmt: str) -> SynthConfig:
         """The defaults of one dataset format."""
         if fmt not in FORMATS:
             raise ConfigError(f"unknown synthetic format {fmt!r}; choose one of {', '.join(FORMATS)}")
@@ -173,7 +173,7 @@ class SynthConfig:
             cfg.camera.distance = (2.5, 6.0)
             cfg.camera.height = (1.5, 3.0)
             cfg.camera.yaw_offset = 10.0
-            # GAFA's shared intrinsics (shared/data/gafa/intrinsics.npz), at the 2*cx x 2*cy frame
+            # GAFA's intrinsics (the dataset's intrinsics.npz, one K for all cameras), at the 2*cx x 2*cy frame
             # its principal point implies
             cfg.camera.fx, cfg.camera.fy = 1423.7917017, 1427.3147532
             cfg.camera.cx, cfg.camera.cy = 1307.9228078, 1015.3387148

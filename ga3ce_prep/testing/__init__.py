@@ -11,4 +11,6 @@ product path.
 - `cluster`: a dask cluster from the standard CLIs and moto's S3 server, on loopback.
 - `stores`: stores compared array for array and bit for bit.
 - `crash`: the crash campaign (kill -9 at random moments, resume, compare bit for bit).
+- `mobilesam_random`: the official MobileSAM architecture with random weights, exported to ONNX
+  and verified, built once from registry packages for the MobileSAM tests and benchmarks.
 """
