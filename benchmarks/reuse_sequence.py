@@ -7,7 +7,7 @@ object within 2 cm and the reverse, pooled over the frames.
 What agreement to expect: the exact generator against itself on every `noise_every`-th frame with
 fresh sensor noise added (Gaussian, std sqrt(2) x the world's RGB noise: the size of the noise
 difference between two frames), on the same depth. Which of a surface's near-tied duplicate prompts
-wins NMS moves with such noise (docs/models.md, "Reuse across frames").
+wins NMS moves with such noise (docs/models/segment-everything.md, "Reuse across frames").
 
 The world: GFIE format, one scene of `frames` 640x480 frames (seed 6, or others: `pooled` sums
 rows over sequences), generated once into out/bench_objects_world_<frames>_seed<seed>/. Cues as

@@ -6,7 +6,7 @@ checkpoint if one is given.
     r.view, r.gaze, r.objects, r.yaw_pitch(r.view)
 
 With a depth file the pipeline's depth backend reads it (`sensor`: PNG millimetres or .npy metres,
-`depth_scale` metres per unit); without one, `depth: fastdepth` estimates it (coarse: docs/models.md).
+`depth_scale` metres per unit); without one, `depth: fastdepth` estimates it (coarse: docs/models/depth.md).
 The stages run in the pipeline's dependency order through the same per-frame calls as `run`; a
 failure of a stage that drops frames in a run (depth, head, view) is an error here, one that
 degrades them (objects, pose) leaves its output empty or NaN and is reported.
@@ -270,7 +270,7 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
     \b
     The default pipeline (pipelines/folder-real.yaml) uses the registry models only
     (`ga3ce-prep models fetch`): FastDepth when there is no depth file, the geometric segmenter,
-    BlazePose, the face mesh's head direction. They are not the paper's models (docs/models.md).
+    BlazePose, the face mesh's head direction. They are not the paper's models (docs/models/registry.md).
     """
     if depth_scale is None:
         depth_scale = 0.001 if depth and Path(depth).suffix.lower() == ".png" else 1.0

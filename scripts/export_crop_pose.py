@@ -7,7 +7,7 @@
 The written model takes image [1, S, S, 3] float32 RGB in [0, 1] (gamma as the runner makes it) and
 the crop camera's intrinsics [1, 3, 3], and returns the smpl+head_30 joints [1, 30, 3] in
 millimetres in the crop camera; the joint names, in that order, go to `<out>.joints.txt`
-(docs/models.md, "3D pose from your model files"). This script imports the authors' code from
+(docs/models/pose.md, "The contract"). This script imports the authors' code from
 your install (MeTRAbs's `metrabs_pytorch` with `posepile`, `simplepyutils` and hydra; or NLF's
 TorchScript file and torchvision): none of it is part of ga3ce-prep.
 
@@ -36,8 +36,8 @@ WEIGHTS = """where to get the weights (read their licences: MeTRAbs's README all
     metrabs repository with posepile and simplepyutils.
   NLF (github.com/isarandi/nlf, Releases): nlf_l_multi_<version>.torchscript; import torchvision
     first (it registers the operators the file uses).
-Written without the weights: the loading of the authors' models is unverified (docs/models.md,
-"3D pose from your model files"); the writing and checking of the files is tested."""
+Written without the weights: the loading of the authors' models is unverified (docs/models/pose.md,
+"What was checked, and what was not"); the writing and checking of the files is tested."""
 SKELETON = "smpl+head_30"
 
 

@@ -1,5 +1,5 @@
 """Export GAFA's GazeNet (kyotovision-public/dynamic-3d-gaze-from-afar) to the ONNX file that the
-pipeline's `view: gafa` backend reads (docs/models.md, "GAFA's view network").
+pipeline's `view: gafa` backend reads (docs/models/view.md, "GAFA's view network").
 
     python scripts/export_gafa_view.py --gafa ~/dynamic-3d-gaze-from-afar --out models/gafa_view.onnx
 

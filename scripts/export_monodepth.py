@@ -1,5 +1,5 @@
-"""Export a metric monocular depth network to ONNX for `depth: onnx` (docs/models.md, "Metric
-monocular depth from your ONNX file").
+"""Export a metric monocular depth network to ONNX for `depth: onnx` (docs/models/depth.md,
+"Exporting ZoeDepth or Depth-Anything-V2-metric").
 
 It imports YOUR install of the network's code and weights; nothing of that code is part of
 ga3ce-prep:

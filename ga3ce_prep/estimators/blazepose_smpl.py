@@ -6,9 +6,9 @@ collars between the shoulders, at the fractions of the project's
 rest skeleton (synthetic/person.py `REST`, SMPL-like proportions: hips at 0.90 m, shoulders at
 1.43 m for a 1.75 m person), the SMPL head joint halfway from the neck to the ear midpoint (REST:
 0.5 cm off), and the head top above the ear midpoint along the head's up axis (REST: 1.8 cm off).
-Every formula is in `DERIVED` and docs/models.md; `tests/test_blazepose.py` checks them against
-REST. A joint whose landmarks' visibility (the lowest, for a derived joint) is below
-`min_visibility` is NaN: GA3CE's missing-joint embedding takes over.
+Every formula is in `DERIVED` and docs/models/pose.md, "The mapping to smpl+head_30";
+`tests/test_blazepose.py` checks them against REST. A joint whose landmarks' visibility (the lowest,
+for a derived joint) is below `min_visibility` is NaN: GA3CE's missing-joint embedding takes over.
 
 Known differences from a MeTRAbs-style smpl+head_30 estimate: BlazePose's hip landmarks lie
 wider apart than SMPL's hip joints (astronaut: 0.21-0.24 m; REST 0.17 m); its foot index is the
@@ -38,7 +38,7 @@ TRUNK_FRACTION: dict[str, float] = {"pelv_smpl": 0.11, "bell_smpl": 0.32, "spin_
 # not the trunk, and needs no hips (often unseen in gaze datasets).
 NECK_FRACTION = 0.25
 COLLAR_FRACTION = 0.42  # collar = shoulder centre + 0.42 (shoulder - shoulder centre), REST 0.075 / 0.18 m
-# The derived joints' formulas, as docs/models.md lists them.
+# The derived joints' formulas, as docs/models/pose.md ("The mapping to smpl+head_30") lists them.
 DERIVED: dict[str, str] = {
     **{j: f"hip_c + {f} (sho_c - hip_c)" for j, f in TRUNK_FRACTION.items()},
     "lcla_smpl": f"sho_c + {COLLAR_FRACTION} (left_shoulder - sho_c)",

@@ -1,7 +1,7 @@
 """The MeTRAbs family's crop-model contract (MeTRAbs, NLF): one person's 3D pose from a perspective
 crop, on the user's ONNX or TorchScript file (`pose/onnx`, `pose/torchscript`).
 
-The model file's interface (docs/models.md, "3D pose from your model files"):
+The model file's interface (docs/models/pose.md, "The contract"):
 
     image       [N, S, S, 3]  the crop, RGB, dtype and value range as `CropPoseOptions` says
                               (MeTRAbs: float, [0, 1]; the model maps it to [-1, 1] itself)

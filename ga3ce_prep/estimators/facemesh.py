@@ -2,8 +2,8 @@
 rotated by the eye line, the 468-landmark mesh, and the facing direction in the camera frame.
 
 This is a HEAD direction (where the face points), not an eye-gaze estimate: the registry has no
-shippable learned 3D gaze model (docs/models.md), so it stands in for the paper's appearance
-network as the view prior v.
+shippable learned 3D gaze model (docs/models/view.md, "Face mesh head direction"), so it stands in
+for the paper's appearance network as the view prior v.
 
 Steps (`FaceMeshEstimator.estimate`), all coordinates in image pixel-index coordinates
 (estimators/crops.py):

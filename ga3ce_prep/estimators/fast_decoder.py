@@ -17,7 +17,8 @@ with three ONNX graphs:
   the image stream after layer 1 through the output upscaling and the hypernetwork product, giving
   the 256x256 low-resolution mask logits.
 
-docs/models.md, "How the fast decoder is fast", writes the derivation out under the code's names.
+docs/models/segment-everything.md, "How the fast decoder is fast", writes the derivation out under
+the code's names.
 Tokens are numbered as in the official decoder: 0 = IoU token, 1..4 = mask tokens (1..3 are the
 "multimask" outputs), then the prompt points. Mask inputs (`has_mask_input` = 1) are not supported:
 segment-everything never uses them.
@@ -80,17 +81,19 @@ class FastDecoder:
     io_binding: run through I/O binding on the first provider's device, all prompts of a crop in one
       batch (module docstring); `use_io_binding` decides it from the segmenter's options."""
 
-    # Prompts per token-graph call: 8 on CPU (measured per batch size in docs/models.md, "Speed"),
+    # Prompts per token-graph call: 8 on CPU (other batch sizes measured in
+    # docs/studies/2026-11-29-segment-everything-speed.md, "What was tried"),
     # GPU_BATCH_SIZE on other providers, None (all prompts of a crop) with I/O binding.
     CPU_BATCH_SIZE = 8
     GPU_BATCH_SIZE = 64
     # Prompts per mask-graph call with I/O binding
     MASK_CHUNK = 64
     # Prompts per mask-graph call at most on the CPU provider (4: the 8 of a token batch in two calls
-    # keep the mask graph's slices in cache; docs/models.md, "Speed")
+    # keep the mask graph's slices in cache; docs/studies/2026-11-29-segment-everything-speed.md, "What was tried")
     CPU_MASK_BATCH = 4
     # Slices of the embedding's pixels the token and mask graphs run one after the other on the CPU
-    # provider (build_token_graph, build_mask_graph; measured in docs/models.md, "Speed"), 1 on others
+    # provider (build_token_graph, build_mask_graph; measured in
+    # docs/studies/2026-11-29-segment-everything-speed.md, "What was tried"), 1 on others
     CPU_TOKEN_PIXEL_CHUNKS = 8
     CPU_MASK_PIXEL_CHUNKS = 32
     # Every token is decoded from the file's weights, a single-mask export's too: the generator's

@@ -3,7 +3,7 @@ and the mask graph (per prompt whose candidates pass the IoU filter). The token 
 fast_decoder_tokens.py.
 
 The algebra, and every name used here (`s0`, `s2`, `m0`, `n0`, `wn0`, `beta`, `SC`, ...), is written
-out once in docs/models.md, "How the fast decoder is fast".
+out once in docs/models/segment-everything.md, "How the fast decoder is fast".
 """
 from __future__ import annotations
 
@@ -147,8 +147,8 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived, pixel_chunks: int = 1
 
     pixel_chunks: the output upscaling and the hypernetwork product run on this many slices of the
       4096 embedding pixels one after the other (every step of them is per pixel), so that each
-      slice's intermediates stay in the core's cache (on CPU, docs/models.md "Speed"); 1 = the whole
-      image in each node (GPU)."""
+      slice's intermediates stay in the core's cache (on CPU; measured in
+      docs/studies/2026-11-29-segment-everything-speed.md, "What was tried"); 1 = the whole image in each node (GPU)."""
     if P % pixel_chunks:
         raise ValueError(f"pixel_chunks must divide {P}, got {pixel_chunks}")
     g = DecoderGraph("mobilesam_fast_masks", w, d)
@@ -173,7 +173,8 @@ def build_mask_graph(w: dict[str, np.ndarray], d: Derived, pixel_chunks: int = 1
     right = g.concat([rc0, rc1, g.op("Expand", g.const(np.stack([c_beta, c_const])[None]),
                                      g.concat([k_dim, g.const([2, C], dtype=np.int64)], axis=0))], axis=1)
     # The second transposed conv's matrix with its bias as a 65th input row against a ones column: a
-    # concat of 1/64 of y costs less than an Add over the 2x larger output (docs/models.md, "Speed")
+    # concat of 1/64 of y costs less than an Add over the 2x larger output
+    # (docs/studies/2026-11-29-segment-everything-speed.md, "What was tried")
     w2 = w["up3.w"].transpose(0, 2, 3, 1).reshape(64, 4 * 32)                         # cols (kh2, kw2, o2)
     w2b = g.const(np.concatenate([w2, np.tile(w["up3.b"], 4)[None]], axis=0))          # (65, 128)
     # The hypernetwork product with the mask tokens' MLP outputs, per output pixel (kh2, kw2) of the

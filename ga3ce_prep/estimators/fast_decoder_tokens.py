@@ -4,8 +4,8 @@ the two `TwoWayAttentionBlock`s, `final_attn_token_to_image`, the mask decoder's
 
 The image stream is never formed per prompt: after layer 0 it is held as the factors of
 keys1 = r1 * (s0 + a0c @ m0) * g1 + b1, after layer 1 as those of keys2; every product with it is
-re-associated through them. docs/models.md, "How the fast decoder is fast", derives each term under
-the names used here.
+re-associated through them. docs/models/segment-everything.md, "How the fast decoder is fast",
+derives each term under the names used here.
 
 The attentions a0c, a1c (B, P, HT) are only ever held transposed, as a0cT, a1cT (B, HT, P): a free
 reshape of the (B, H, T, P) softmax output, where a0c would cost a transpose of it. Products with
@@ -219,7 +219,8 @@ def build_token_graph(w: dict[str, np.ndarray], d: Derived, pixel_chunks: int = 
     pixel_chunks: every per-pixel step runs on this many slices of the 4096 embedding pixels one
       after the other, and the three softmaxes over the pixels are streamed over them
       (`_PixelSoftmax`), so that a slice's (B, H, T, n) intermediates stay in the core's cache (on
-      CPU, docs/models.md "Speed"); 1 = the whole image in each node (GPU)."""
+      CPU; measured in docs/studies/2026-11-29-segment-everything-speed.md, "What was tried"); 1 = the
+      whole image in each node (GPU)."""
     g = _TokenGraph(w, d, pixel_chunks)
     coords = g.input("point_coords", ["B", "N", 2])
     labels = g.input("point_labels", ["B", "N"])

@@ -50,7 +50,8 @@ class _OnnxParams:
             raise ModelFileError(
                 f"decoder ONNX {self.path}: expected one node named '*{suffix}', found {len(hits)}; the fast "
                 "decoder reads the weights of MobileSAM's scripts/export_onnx_model.py graph exported with "
-                "torch.onnx.export(dynamo=False) (docs/models.md); use decoder='official' for other graphs")
+                "torch.onnx.export(dynamo=False) (docs/models/segment-everything.md, \"Exporting from a "
+                "trained `mobile_sam.pt`\"); use decoder='official' for other graphs")
         return hits[0]
 
     def param(self, suffix: str, position: int | None = None) -> np.ndarray:

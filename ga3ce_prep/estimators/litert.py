@@ -3,7 +3,7 @@
 a file's inputs and outputs against the contract a runner expects, and one call.
 
 The models run on the CPU (XNNPACK). LiteRT has no CUDA path in its Python package; GPU users run
-the ONNX backends instead (docs/models.md).
+the ONNX backends instead (docs/models/registry.md, "Which model, where").
 """
 from __future__ import annotations
 

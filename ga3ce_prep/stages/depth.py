@@ -29,7 +29,7 @@ from .precomputed import precomputed_table
 from .truth import TruthParams, check_truth_file, truth_frame
 
 EXPORT_HINT = ("export it with scripts/export_monodepth.py from your ZoeDepth or Depth-Anything-V2 install "
-               "(docs/models.md, \"Metric monocular depth from your ONNX file\")")
+               "(docs/models/depth.md, \"Exporting ZoeDepth or Depth-Anything-V2-metric\")")
 
 
 def check_resolution(frame: FrameRef, shape: tuple[int, ...], what: str) -> None:
@@ -120,7 +120,8 @@ class MonoDepth(ProcessEstimator, DepthBackend):
 
 class OnnxDepth(MonoDepth):
     """Metric monocular depth from the user's ONNX export (ZoeDepth, Depth-Anything-V2-metric and
-    the like): a preset for the common exports, any of its options overridden (docs/models.md)."""
+    the like): a preset for the common exports, any of its options overridden
+    (docs/models/depth.md, "Presets")."""
 
     name = "onnx"
 
@@ -146,7 +147,8 @@ class OnnxDepth(MonoDepth):
 class FastDepth(MonoDepth):
     """FastDepth (NYU-Depth-v2) on the registry's ONNX file: the `fastdepth` preset, metric depth of
     the largest centred 4:3 crop, rescaled for the frame's focal length; 0 outside the crop. The
-    depth is coarse (blurry edges, close-ups collapse to about 1-1.5 m): docs/models.md."""
+    depth is coarse (blurry edges, close-ups collapse to about 1-1.5 m):
+    docs/models/depth.md, "FastDepth (`depth: fastdepth`)"."""
 
     name = "fastdepth"
 

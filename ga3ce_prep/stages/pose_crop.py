@@ -21,7 +21,7 @@ from ..params import param
 from .base import PoseBackend, ProcessEstimator
 
 EXPORT_HINT = ("write it with scripts/export_crop_pose.py from your MeTRAbs (or NLF) model "
-               "(docs/models.md, '3D pose from your model files')")
+               "(docs/models/pose.md, '3D pose from your model files')")
 
 
 class CropPose(ProcessEstimator, PoseBackend):

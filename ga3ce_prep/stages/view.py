@@ -131,8 +131,9 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
 
 
 GFIE_HINT = ("GFIE's released checkpoint (gfiemodel.pt.tar, linked from the README of github.com/nkuhzx/GFIE); "
-             "docs/models.md, GFIE's head network")
-ONNX_HINT = "export your head-crop network to ONNX (docs/models.md, view: onnx; GFIE's: ga3ce-prep export-gfie-view)"
+             "docs/models/view.md, GFIE's head network")
+ONNX_HINT = ("export your head-crop network to ONNX (docs/models/view.md, Head-crop ONNX networks; "
+             "GFIE's: ga3ce-prep export-gfie-view)")
 
 
 class GFIEView(ProcessEstimator, ViewBackend):
@@ -231,7 +232,8 @@ class GafaView(ProcessEstimator, ViewBackend):
     class Params(RuntimeParams):
         model: Path = param(
             # ONNX of GAFA's GazeNet (7 frames): image, head_mask, body_dv -> gaze
-            file="model", hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models.md)")
+            file="model",
+            hint="export GAFA's GazeNet with scripts/export_gafa_view.py (docs/models/view.md, GAFA's view network)")
 
     def check(self) -> None:
         """Before any work: the providers and the file's interface (GazeNet's inputs and output)."""

@@ -1,0 +1,90 @@
+"""The repository as a stranger meets it: a short README whose file map is complete and whose
+figures link to their studies, relative links that resolve, and no file that names a build
+machine's paths, the team's sibling folder or an issue tracker's numbers."""
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+README = (REPO / "README.md").read_text()
+
+
+def tracked_files() -> list[Path]:
+    """The files git tracks (the repository as a clone has it); the working tree if git is absent."""
+    try:
+        out = subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=True).stdout
+        return [REPO / f for f in out.splitlines() if (REPO / f).is_file()]
+    except (OSError, subprocess.CalledProcessError):
+        return [p for p in REPO.rglob("*") if p.is_file() and ".venv" not in p.parts and ".git" not in p.parts]
+
+
+def text_files() -> list[Path]:
+    return [p for p in tracked_files() if p.suffix in {".py", ".md", ".yaml", ".toml", ".sh", ".json", ".txt", ""}]
+
+
+def test_readme_is_short():
+    assert len(README.splitlines()) <= 150
+
+
+def test_readme_map_names_every_folder_and_make_target():
+    folders = sorted(p.name for p in REPO.iterdir() if p.is_dir() and not p.name.startswith((".", "_"))
+                     and any(True for _ in p.iterdir()) and p.name not in {"out", "runs", "build"}
+                     and not p.name.endswith(".egg-info"))
+    folders += [".ci"]
+    packages = sorted(p.name for p in (REPO / "ga3ce_prep").iterdir() if (p / "__init__.py").is_file())
+    targets = re.findall(r"^([a-z][a-z0-9-]*):", (REPO / "Makefile").read_text(), flags=re.M)
+    assert {"demo", "test", "lint"} <= set(targets)
+    missing = [f"{f}/" for f in folders if f"{f}/" not in README]
+    missing += [f"ga3ce_prep/{p}/" for p in packages if f"{p}/" not in README]
+    missing += [f"make {t}" for t in targets if f"make {t}" not in README]
+    assert not missing, f"README.md's file map does not name: {missing}"
+
+
+def test_readme_figures_link_to_studies():
+    """Every row of the headline table links to the docs/studies/ page that measured it."""
+    start = README.index("## Headline figures")
+    table = [line for line in README[start:].split("\n## ")[0].splitlines() if line.startswith("|")][2:]
+    assert 1 <= len(table) <= 12
+    for row in table:
+        assert "docs/studies/" in row, f"headline row without its study: {row}"
+
+
+@pytest.mark.parametrize("path", [p for p in tracked_files() if p.suffix == ".md"], ids=lambda p: p.name)
+def test_relative_links_resolve(path):
+    text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)
+    for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+        if re.match(r"[a-z]+:", target):
+            continue
+        assert (path.parent / target).exists(), f"{path.relative_to(REPO)}: link to {target} does not resolve"
+
+
+def test_studies_are_dated_and_reproducible():
+    studies = sorted((REPO / "docs" / "studies").glob("*.md"))
+    assert studies
+    for p in studies:
+        if p.name == "README.md":
+            continue
+        assert re.match(r"\d{4}-\d{2}-\d{2}-[a-z0-9-]+\.md$", p.name), p.name
+        text = p.read_text()
+        assert re.search(r"python|pytest |make |ga3ce-prep ", text), f"{p.name} gives no command that reproduces it"
+
+
+# A build machine's absolute paths (a workflow lock's among them) and the team's sibling folder.
+MACHINE = re.compile(r"(?<![\w.])/(?:work|root|home|tmp)/[\w.-]|\.\./shared\b")
+# Our tracker's issue numbers in prose ("issue 16", "issues 16 and 17"); another project's
+# issues are named with the project ("ZoeDepth's issue tracker").
+ISSUE = re.compile(r"\bissues? #?\d+|\(#\d+\)", re.I)
+
+
+def test_no_machine_paths_or_issue_numbers():
+    here = Path(__file__).resolve()
+    bad = []
+    for p in text_files():
+        if p.resolve() == here:
+            continue
+        for n, line in enumerate(p.read_text(errors="replace").splitlines(), 1):
+            if MACHINE.search(line) or ISSUE.search(line):
+                bad.append(f"{p.relative_to(REPO)}:{n}: {line.strip()[:100]}")
+    assert not bad, "\n".join(bad[:30])
