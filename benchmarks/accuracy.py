@@ -21,9 +21,9 @@ from pathlib import Path
 
 import click
 
-from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.model import METHODS, ModelConfig
 from ga3ce_prep.train import TrainConfig
-from ga3ce_prep.train.ablate import ABLATIONS, ablate
+from ga3ce_prep.train.ablate import ablate, default_rows
 from ga3ce_prep.train.cli import _model_sets
 
 from cpu_lock import CLI, cpu_lock, run_locked
@@ -54,10 +54,12 @@ RECIPE = TrainConfig()   # the default recipe
               help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
 @click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="View-noise augmentation.")
+@click.option("--model", "model_name", type=click.Choice(list(METHODS)), default="ga3ce", show_default=True,
+              help="The base model whose ablations are trained (ga3ce: the paper's).")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")
 def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_config, pipeline, sets, rows, seeds, epochs,
-         lr, view_noise, model_set, train_frames):
+         lr, view_noise, model_name, model_set, train_frames):
     out = Path(out)
     data = Path(data) if data else out / "data"
     store = Path(store_path) if store_path else out / f"{pipeline}.zarr"
@@ -73,8 +75,9 @@ def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_conf
         run_locked(cmd)
 
     base = TrainConfig(store=str(store), out=str(out / "runs"), epochs=epochs, lr=lr, view_noise=view_noise,
-                       train_frames=train_frames, progress=False, model=ModelConfig(**_model_sets(model_set)))
-    names = [r.strip() for r in rows.split(",")] if rows else [a.name for a in ABLATIONS]
+                       train_frames=train_frames, progress=False,
+                       model=ModelConfig.for_method(model_name, **_model_sets(model_set)))
+    names = [r.strip() for r in rows.split(",")] if rows else default_rows(model_name)
     seed_list = [int(s) for s in seeds.split(",")]
     runs = out / "runs"
     for name in names:  # one row at a time under the lock, so other heavy jobs can interleave

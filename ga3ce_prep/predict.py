@@ -43,7 +43,8 @@ class Prediction:
     head_pos (3,) metres; pose (30, 3) metres, NaN = missing; objects (M, 3) metres with their
     mask areas (M,) px and scores (M,); depth: the completed depth map used; sources: how each
     stage's result came about where its backend says (e.g. view: "face" or "pose");
-    degraded: stage -> the error that left its output empty."""
+    degraded: stage -> the error that left its output empty; model: the name of the model that
+    gave g ("GA3CE (paper)", "ours"; "" without a checkpoint)."""
 
     frame: FrameRef
     view: np.ndarray
@@ -56,6 +57,7 @@ class Prediction:
     depth: DepthMap
     sources: dict[str, str] = field(default_factory=dict)
     degraded: dict[str, str] = field(default_factory=dict)
+    model: str = ""
 
     @staticmethod
     def yaw_pitch(d: np.ndarray) -> tuple[float, float]:
@@ -69,7 +71,8 @@ class Prediction:
 
         out = {"image": str(self.frame.image_path), "K": self.frame.K.tolist(),
                "head_box": self.frame.head_box.tolist(), "view": vec(self.view), "gaze": vec(self.gaze),
-               "head_pos": vec(self.head_pos), "sources": self.sources, "degraded": self.degraded,
+               "head_pos": vec(self.head_pos), "model": self.model or None, "sources": self.sources,
+               "degraded": self.degraded,
                "pose": [vec(j) for j in self.pose],
                "objects": [{"xyz": vec(x), "area": int(a), "score": round(float(s), 4)}
                            for x, a, s in zip(self.objects, self.area, self.score)]}
@@ -88,7 +91,8 @@ class Prediction:
                     f"pitch {pitch:+6.1f} deg{note}")
 
         src = f"   from {self.sources['view']}" if "view" in self.sources else ""
-        lines = [row("view prior v", self.view, src), row("gaze g", self.gaze)]
+        by = f"   by {self.model}" if self.model else ""
+        lines = [row("view prior v", self.view, src), row("gaze g", self.gaze, by)]
         h = self.head_pos
         hsrc = f"   depth from {self.sources['head']}" if "head" in self.sources else ""
         lines.append(f"{'head t_object':<14} ({h[0]:+.3f}, {h[1]:+.3f}, {h[2]:+.3f}) m{hsrc}")
@@ -131,13 +135,15 @@ class Predictor:
                  overrides: list[str] | None = None):
         self.pipeline, self.overrides = pipeline or DEFAULT_PIPELINE, list(overrides or [])
         self._backends: dict[bool, tuple[Any, dict[str, Any]]] = {}  # has depth file -> (conf, backends)
-        self.model = None
+        self.model, self.model_name = None, ""
         if checkpoint is not None:
+            from .model import ModelConfig, model_label
             from .train.checkpoint import build_model, check_checkpoint, load_checkpoint
 
             ckpt = load_checkpoint(checkpoint)
             check_checkpoint(ckpt, checkpoint)
             self.model = build_model(ckpt)
+            self.model_name = model_label(ModelConfig.from_dict(ckpt["config"]["model"]))
 
     def _stages(self, has_depth: bool):
         """The loaded pipeline and its checked, warmed backends (the no-depth variant swaps in
@@ -193,7 +199,7 @@ class Predictor:
                           pose=np.asarray(out["pose"], np.float32), objects=obj.xyz, area=obj.area,
                           score=obj.score, depth=out["depth"], sources=sources, degraded=degraded)
         if self.model is not None:
-            pred.gaze = self._gaze(pred)
+            pred.gaze, pred.model = self._gaze(pred), self.model_name
         return pred
 
     def _gaze(self, p: Prediction) -> np.ndarray:
@@ -250,7 +256,8 @@ def _box(value: str | None) -> tuple[float, ...] | None:
 @click.option("--fov", default=DEFAULT_FOV, show_default=True,
               help="Horizontal field of view in degrees, when no --intrinsics.")
 @click.option("--checkpoint", "-c", default=None, type=click.Path(dir_okay=False, exists=True),
-              help="A GA3CE checkpoint (best.pt) to predict the gaze g; without it only the 3D context and v.")
+              help="A checkpoint of `ga3ce-prep train` (best.pt; the paper's GA3CE or ours) to predict "
+              "the gaze g; without it only the 3D context and v.")
 @click.option("--pipeline", "-p", default=DEFAULT_PIPELINE, show_default=True,
               help="Pipeline file or bundled name whose backends run on the frame.")
 @click.option("--set", "overrides", multiple=True, help="Override a pipeline setting (repeatable).")
@@ -261,7 +268,7 @@ def _box(value: str | None) -> tuple[float, ...] | None:
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
 def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, overrides, out, ply,
             as_json) -> None:
-    """Run the pipeline's stages on one frame (no store) and, with --checkpoint, the GA3CE model.
+    """Run the pipeline's stages on one frame (no store) and, with --checkpoint, its model.
 
     Prints the view prior v and the gaze g (unit vectors, camera frame x right, y down, z forward;
     yaw/pitch in degrees, 0/0 = looking at the camera, yaw > 0 toward the image's right, pitch > 0
@@ -278,7 +285,7 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
     r = p(image, _box(head_box), depth=depth, depth_scale=depth_scale, fov=fov, K=K, body_box=_box(body_box))
     from .viz import write_context
 
-    label = "gaze g (model)" if checkpoint else "gaze g (no checkpoint)"
+    label = f"gaze g ({p.model_name})" if checkpoint else "gaze g (no checkpoint)"
     write_context(one_frame_store(r), 0, r.frame, out, gaze_label=label)
     if ply:
         write_context(one_frame_store(r), 0, r.frame, ply, depth=r.depth.depth)

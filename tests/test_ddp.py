@@ -32,11 +32,13 @@ def _history(run):
         return list(csv.DictReader(f))
 
 
-def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path):
-    one = train(TrainConfig(store=str(store), out=str(tmp_path / "one"), progress=False, model=ModelConfig(**SMALL),
-                            **RECIPE))
+@pytest.mark.parametrize("method", ["ga3ce", "ours"])
+def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path, method):
+    one = train(TrainConfig(store=str(store), out=str(tmp_path / "one"), progress=False,
+                            model=ModelConfig.for_method(method, **SMALL), **RECIPE))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "ga3ce_prep.cli", "train", "--store", str(store), "--out", str(tmp_path / "two"), "--no-progress"]
+           "-m", "ga3ce_prep.cli", "train", "--store", str(store), "--out", str(tmp_path / "two"), "--no-progress",
+           "--model", method]
     for k, v in RECIPE.items():
         cmd += [f"--{k.replace('_', '-')}", str(v)]
     for k, v in SMALL.items():
@@ -54,11 +56,14 @@ def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path):
     wa, wb = load_checkpoint(one / "last.pt")["model"], load_checkpoint(two / "last.pt")["model"]
     assert wa.keys() == wb.keys()
     d = SMALL.get("d_model", 256)
+    # the paper's model sums its encoder's gradients over the objects of two half batches in
+    # another order: a few weights near zero differ by float noise (5e-6 seen) after AdamW's steps
+    atol = 1e-6 if method == "ours" else 2e-5
     for k in wa:
         a_, b_ = wa[k], wb[k]
-        if re.fullmatch(r".*decoder\.layers\.\d+\.multihead_attn\.in_proj_(weight|bias)", k):
+        if method == "ours" and re.fullmatch(r".*decoder\.layers\.\d+\.multihead_attn\.in_proj_(weight|bias)", k):
             # the pointer's first pass cross-attends to the null token alone: a softmax over one key
             # is 1, so the query and key rows get float-noise gradients only, which AdamW turns into
             # arbitrary steps; they do not change any output (the histories above agree). Values only.
             a_, b_ = a_[2 * d:], b_[2 * d:]
-        torch.testing.assert_close(b_, a_, rtol=1e-4, atol=1e-6, msg=k)
+        torch.testing.assert_close(b_, a_, rtol=1e-4, atol=atol, msg=k)

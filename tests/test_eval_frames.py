@@ -174,7 +174,7 @@ def test_gafa_eval_prints_table_3_per_scene_over_gafa_windows(gafa_store):
     assert "GAFA's 7-frame windows (raw-consecutive frames, interval 7)" in table
     header = next(line for line in table.splitlines() if "Office" in line)
     assert header.split() == ["Office", "Living", "room", "Kitchen", "Library", "Courtyard", "All"]
-    paper = next(line for line in table.splitlines() if line.startswith("GA3CE (paper)"))
+    paper = next(line for line in table.splitlines() if line.startswith("GA3CE, the paper's figure"))
     assert paper.split()[-3:] == ["19.9", "/", "-"] and paper.count("-   /   -") == 5   # the unknown cells stay empty
     every = evaluate(store, ckpt, cdf_path=None, frames="all")
     assert every["frames"]["expected"] == len(frames)

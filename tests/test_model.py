@@ -137,7 +137,7 @@ def test_encoding_widths():
 
 
 @pytest.mark.parametrize("cfg", [ModelConfig(), ModelConfig(rotation="axis_angle", encoding="standard"),
-                                 ModelConfig(rotation="none", use_pose=False), ModelConfig(output="regress")])
+                                 ModelConfig(rotation="none", use_pose=False), ModelConfig.for_method("ours")])
 def test_padding_does_not_change_prediction(cfg):
     torch.manual_seed(0)
     m = GA3CE(cfg).eval()
@@ -240,7 +240,7 @@ SMALL = dict(num_encoder_layers=1, num_decoder_layers=2, dim_feedforward=128, he
 
 @pytest.mark.parametrize("cfg", [ModelConfig(output="regress", **SMALL),
                                  ModelConfig(output="regress", cone_bias=False, rotation="none", **SMALL),
-                                 ModelConfig(use_objects=False, **SMALL), ModelConfig(**SMALL)])
+                                 ModelConfig(use_objects=False, **SMALL), ModelConfig(output="pointer", **SMALL)])
 @pytest.mark.parametrize("grad", [False, True])
 def test_attention_hook_leaves_outputs_identical(cfg, grad):
     torch.manual_seed(0)
@@ -267,7 +267,7 @@ def test_attention_hook_leaves_outputs_identical(cfg, grad):
 
 def test_pointer_first_pass_is_the_network_without_objects():
     torch.manual_seed(0)
-    two = GA3CE(ModelConfig(**SMALL)).eval()                 # the default: output pointer
+    two = GA3CE(ModelConfig.for_method("ours", **SMALL)).eval()   # ours: output pointer
     one = GA3CE(ModelConfig(output="regress", **SMALL)).eval()
     missing, unexpected = one.load_state_dict(two.state_dict(), strict=False)   # same weights, no pointer
     assert not missing and all(k.startswith("pointer.") for k in unexpected)
@@ -281,16 +281,18 @@ def test_pointer_first_pass_is_the_network_without_objects():
     assert torch.equal(g_w, g) and p.shape == (5, 9)
     torch.testing.assert_close(p.sum(-1), torch.ones(5))
     assert (p[:, 1:][~mask] == 0).all()                      # padding gets nothing
-    # checkpoints written before the pointer existed hold the paper's model
-    old = {k: v for k, v in ModelConfig(output="regress").to_dict().items() if k not in ("output", "pointer_kappa")}
-    assert ModelConfig.from_dict(old).output == "regress"
+    # checkpoints written before the pointer existed hold the paper's model; those written before
+    # methods had names are named by their output
+    old = {k: v for k, v in ModelConfig().to_dict().items() if k not in ("method", "output", "pointer_kappa")}
+    assert ModelConfig.from_dict(old).output == "regress" and ModelConfig.from_dict(old).method == "ga3ce"
+    assert ModelConfig.from_dict({**old, "output": "pointer"}).method == "ours"
     with pytest.raises(ValueError, match="output"):
         ModelConfig(output="select")
 
 
 def test_pointer_output_points_at_the_axis_or_an_object():
     torch.manual_seed(0)
-    m = GA3CE(ModelConfig(pointer_kappa=20.0, **SMALL)).eval()
+    m = GA3CE(ModelConfig(output="pointer", pointer_kappa=20.0, **SMALL)).eval()
     for lin in (m.pointer.q, m.pointer.k):                   # no learned preference: the bias alone weighs
         torch.nn.init.zeros_(lin.weight), torch.nn.init.zeros_(lin.bias)
     view, pose, head, objects, mask = _scene(B=5, S=8)
@@ -307,7 +309,7 @@ def test_pointer_output_points_at_the_axis_or_an_object():
     np.testing.assert_allclose(g.numpy(), expect / np.linalg.norm(expect, axis=1, keepdims=True), atol=1e-5)
     torch.testing.assert_close(g[3], g0[3])                  # no objects: the first pass's g0
     # the no-objects ablation of a pointer model regresses like the paper's (nothing to point at)
-    m0 = GA3CE(ModelConfig(use_objects=False, **SMALL)).eval()
+    m0 = GA3CE(ModelConfig(output="pointer", use_objects=False, **SMALL)).eval()
     paper = GA3CE(ModelConfig(output="regress", use_objects=False, **SMALL)).eval()
     assert not hasattr(m0, "pointer")
     paper.load_state_dict(m0.state_dict())
@@ -322,5 +324,7 @@ def test_attention_hook_refuses_training_mode_and_appearance_only():
     x = (view, pose.float(), head, objects, mask)
     with pytest.raises(RuntimeError, match="eval mode"):
         GA3CE(ModelConfig(**SMALL)).train().cross_attention(*x)
+    with pytest.raises(RuntimeError, match="eval mode"):
+        GA3CE(ModelConfig(output="pointer", **SMALL)).train().cross_attention(*x)
     with pytest.raises(ValueError, match="no attention"):
         GA3CE(ModelConfig(use_context=False)).eval().cross_attention(*x)

@@ -74,7 +74,7 @@ def test_report_page_and_its_errors(toy, tmp_path):
         assert (tmp_path / "r" / f"{name}.png").stat().st_size > 10_000, name
         assert f"({name}.png)" in text
     assert text.count('<img src="data:image/png;base64,') == 7
-    assert "Table 4" in text and "GA3CE (model)" in text
+    assert "Table 4" in text and "GA3CE (paper)" in text and "GA3CE (model)" not in text
     assert json.loads((tmp_path / "r" / "eval.json").read_text())["split"] == "test"
     # a plain run folder: no ablation, the page says how to add one
     text = report(run, out=tmp_path / "plain").read_text()

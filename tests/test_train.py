@@ -12,6 +12,7 @@ from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
 from ga3ce_prep.train import trainer as trainer_module
+from ga3ce_prep.train.ablate import default_rows
 from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
 
 torch.set_num_threads(2)
@@ -68,7 +69,7 @@ def test_train_step_adds_the_first_pass_loss_with_its_weight(store, w):
     from ga3ce_prep.train.trainer import train_step
     b = ContextDataset(open_store(store), "train").batch(list(range(16)))
     torch.manual_seed(0)
-    model = GA3CE(ModelConfig(dropout=0.0, **SMALL))          # the pointer: [g0, g]
+    model = GA3CE(ModelConfig(output="pointer", dropout=0.0, **SMALL))   # the pointer: [g0, g]
     before = {k: v.clone() for k, v in model.state_dict().items()}
     g0, g = model(b.view, b.pose, b.head_pos, b.objects, b.mask, all_passes=True)
     total = angular_loss(g, b.gaze) + w * angular_loss(g0, b.gaze)
@@ -149,10 +150,11 @@ def test_evaluate_reports_model_and_baselines(store, tmp_path):
             == pytest.approx(m["model"]["mae3d"]))
     assert (run / "eval_test_cdf.png").stat().st_size > 1000
     table = format_eval_table(r)
-    from ga3ce_prep.train.evaluate import METHODS
+    assert r["labels"]["model"] == "GA3CE (paper)"   # the default model is the paper's, named so
+    assert table.splitlines()[4].startswith("GA3CE (paper) ") and " model " not in table
     for key, beats in r["beats"].items():   # the table says which baselines the model does not beat
-        assert (f"  beats {METHODS[key]}" in table) == beats
-        assert (f"does NOT beat {METHODS[key]}" in table) == (not beats)
+        assert (f"  beats {r['labels'][key]}" in table) == beats
+        assert (f"does NOT beat {r['labels'][key]}" in table) == (not beats)
     # appearance only: the checkpoint reproduces the v prior exactly
     app = train(_cfg(store, tmp_path / "app", model=ModelConfig(use_context=False, **SMALL)))
     ra = evaluate(store, app / "best.pt", split="test", cdf_path=None)
@@ -161,8 +163,11 @@ def test_evaluate_reports_model_and_baselines(store, tmp_path):
 
 def test_ablate_table(store, tmp_path):
     base = _cfg(store, tmp_path, epochs=1, train_frames=32)
-    s = ablate(base, tmp_path / "abl", rows=["appearance", "no-objects", "no-pose", "full"])  # no-pose: no paper figure
-    assert [r["name"] for r in s["rows"]] == ["appearance", "no-objects", "no-pose", "full"]
+    rows = ["appearance", "no-objects", "no-pose", "full", "ours"]   # no-pose: no paper figure
+    s = ablate(base, tmp_path / "abl", rows=rows)
+    assert [r["name"] for r in s["rows"]] == rows
+    assert [r["label"] for r in s["rows"]][3:] == ["GA3CE (paper) (full)", "ours"]
+    assert "ours" in default_rows("ga3ce") and "ga3ce" not in default_rows("ga3ce") and "ga3ce" in default_rows("ours")
     assert s["rows"][0]["ratio"] == pytest.approx(1.0, abs=1e-5)
     t = s["table"]
     assert "Table 4" in t
@@ -171,6 +176,9 @@ def test_ablate_table(store, tmp_path):
     assert "13.10" in t
     assert "11.10" in t
     assert ("the full model is best" in t) == s["full_best"]
+    assert "The other named models" in t
+    cfg = load_checkpoint(tmp_path / "abl" / "ours" / "seed0" / "best.pt")["config"]["model"]
+    assert (cfg["method"], cfg["output"]) == ("ours", "pointer")
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
     # eval of the full row scores the no-objects row beside it (what the objects add), and says so
@@ -179,17 +187,19 @@ def test_ablate_table(store, tmp_path):
     assert r["no_objects_checkpoint"] == str(noobj)
     m = r["methods"]
     assert m["no_objects"]["mae3d"] == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
+    assert m["ours"]["mae3d"] == pytest.approx(s["rows"][4]["mae3d"], abs=1e-9)   # ours beside it, by name
+    assert r["labels"]["ours"] == "ours" and r["beats"]["ours"] == (m["model"]["mae3d"] < m["ours"]["mae3d"])
     assert m["model"]["mae3d"] == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
     assert r["beats"]["no_objects"] == (m["model"]["mae3d"] < m["no_objects"]["mae3d"])
     table = format_eval_table(r)
-    assert "GA3CE, no objects (app. + pose)" in table
+    assert "no objects (app. + pose)" in table
     assert ("objects add" if r["beats"]["no_objects"] else "objects cost") in table
     assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None)["methods"]
     assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None)["methods"]
     res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none",
                                    "--no-scenes"])
     assert res.exit_code == 0, res.output
-    assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "GA3CE, no objects" in res.output
+    assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "no objects (app. + pose)" in res.output
     # rerunning reuses the finished runs
     mtime = (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime
     ablate(base, tmp_path / "abl", rows=["full"])
@@ -210,8 +220,22 @@ def test_cli_train_eval(store, tmp_path):
     assert ck["config"]["model"]["cone_bias_scale"] == 2
     res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(out / "best.pt"), "--cdf", "none"])
     assert res.exit_code == 0, res.output
-    assert "GA3CE (model)" in res.output
+    assert "GA3CE (paper), rotation=none, encoding=standard " in res.output and "(model)" not in res.output
     assert "head direction from pose" in res.output
+    # --model ours: our design by name, recorded in the checkpoint and named in the table
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(tmp_path / "ours"), "--epochs", "1",
+                              "--train-frames", "32", "--val-frames", "16", "--no-progress", "--model", "ours",
+                              "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
+    assert res.exit_code == 0, res.output
+    cfg = load_checkpoint(tmp_path / "ours" / "best.pt")["config"]["model"]
+    assert (cfg["method"], cfg["output"]) == ("ours", "pointer")
+    res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(tmp_path / "ours" / "best.pt"),
+                              "--cdf", "none", "--no-scenes"])
+    assert res.exit_code == 0, res.output
+    assert "\nours " in res.output and "GA3CE (paper)" not in res.output
+    res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--model", "ours",
+                              "--ablation", "ga3ce"])
+    assert res.exit_code != 0 and "drop --model ours" in res.output
     res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--ablation", "no-ga3ce",
                               "--rotation", "axis_angle"])
     assert res.exit_code != 0
@@ -235,3 +259,6 @@ def test_cli_recipe_options_are_the_config_fields():
     assert "--no-bucket" in res.output
     assert "--no-progress" in res.output
     assert "no-ga3ce" in res.output
+    text = " ".join(res.output.split())
+    assert "ga3ce = GA3CE (paper)" in text and "[default: ga3ce]" in text
+    assert TrainConfig().model.method == "ga3ce" and TrainConfig().model.output == "regress"   # the paper's

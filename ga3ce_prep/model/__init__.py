@@ -4,12 +4,14 @@ from .egocentric import EgocentricContext, egocentric_transform, pose_normalizat
 from .encoding import ENCODINGS, PointEncoding, d3_encoding, fourier_features
 from .ga3ce import GA3CE, ModelConfig
 from .loss import angular_loss
+from .methods import DEFAULT_METHOD, METHODS, Method, model_label
 from .rotation import ROTATIONS, axis_angle_rotation, cyclotorsion_rotation, identity_rotation, rotation
 from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
 
 __all__ = [
     "EgocentricContext", "egocentric_transform", "pose_normalization", "ENCODINGS", "PointEncoding",
-    "d3_encoding", "fourier_features", "GA3CE", "ModelConfig", "angular_loss", "ROTATIONS",
+    "d3_encoding", "fourier_features", "GA3CE", "ModelConfig", "angular_loss", "DEFAULT_METHOD", "METHODS",
+    "Method", "model_label", "ROTATIONS",
     "axis_angle_rotation", "cyclotorsion_rotation", "identity_rotation", "rotation",
     "GazeTransformer", "MLPHead", "gaze_cone_bias",
 ]

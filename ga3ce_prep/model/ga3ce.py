@@ -3,14 +3,15 @@
     v, P_pose, P_object, t_object --egocentric_transform--> v', P'_pose, P'_obj
     E_view = gamma(v') (106),  E_pose = D3 per joint (15 x 10),  E_subject = E_view ++ E_pose (256)
     F_object = D3(P'_obj) (256 each), after a learned null token
-    output "regress" (the paper):
+    output "regress" (the paper's, the default; method "ga3ce"):
         g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
-    output "pointer" (ours, the default; docs/training.md "What the objects add"):
+    output "pointer" (method "ours"; docs/training.md "Ours"):
         g0' = MLP(decoder(E_subject | encoder(null token))),  g0 = normalise(R^T g0' + v)
         p = softmax(q(E_subject) . k([null, F_object]) + kappa (cos(g0, u_i) - 1)),  g = p_null g0 + sum p_i u_i
 
-`ModelConfig` holds every architectural choice and ablation switch; it is a plain dataclass saved
-in checkpoints as a dict. Units: metres, camera frame (x right, y down, z forward).
+`ModelConfig` holds every architectural choice and ablation switch, and the name of the method
+(model/methods.py) it was made from; it is a plain dataclass saved in checkpoints as a dict.
+Units: metres, camera frame (x right, y down, z forward).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from torch import nn
 from ..skeleton import GA3CE_JOINTS, HEAD_WIDTH_PAIR
 from .egocentric import egocentric_transform
 from .encoding import ENCODINGS, PointEncoding
+from .methods import DEFAULT_METHOD, METHODS
 from .rotation import ROTATIONS
 from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
 
@@ -32,7 +34,13 @@ OUTPUTS: tuple[str, ...] = ("pointer", "regress")
 @dataclass
 class ModelConfig:
     """Architecture, encodings and ablation switches of GA3CE; defaults are the paper's values, or
-    our reading where it is silent (docs/training.md, "The model")."""
+    our reading where it is silent (docs/training.md, "The model"). `for_method` builds a named
+    method's config."""
+
+    method: str = (
+        # the named method (model/methods.py) this config was made from: ga3ce (the
+        # paper's) or ours; it names the model in every table
+        DEFAULT_METHOD)
 
     rotation: str = (
         # egocentric rotation: cyclotorsion (GA3CE's), axis_angle
@@ -46,10 +54,10 @@ class ModelConfig:
     use_objects: bool = True  # False feeds the learned null object token alone (ablation "appearance + pose")
     use_context: bool = True  # False is "appearance only": g = v, no parameters are used
     output: str = (
-        # pointer (ours, docs/training.md "What the objects add": a first pass without
-        # objects gives g0, then g points at g0 or at an object, transformer.ObjectPointer)
-        # or regress (the paper: g = R^T MLP(decoder over the objects) + v)
-        "pointer")
+        # regress (the paper's: g = R^T MLP(decoder over the objects) + v) or pointer
+        # (ours, docs/training.md "Ours": a first pass without objects gives g0, then g
+        # points at g0 or at an object, transformer.ObjectPointer)
+        "regress")
     cone_bias: bool = (
         # the gaze-cone bias: regress adds cos(v, object direction from the head) to cross-attention
         # (the paper); pointer adds pointer_kappa (cos(g0, object direction) - 1) to its logits
@@ -86,6 +94,8 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {tuple(METHODS)}, got {self.method!r}")
         if self.rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
         if self.output not in OUTPUTS:
@@ -103,9 +113,19 @@ class ModelConfig:
         return d
 
     @classmethod
+    def for_method(cls, name: str = DEFAULT_METHOD, **overrides: Any) -> ModelConfig:
+        """Method `name`'s config (model/methods.py), with `overrides` (ablation switches,
+        `--model-set`) on top."""
+        if name not in METHODS:
+            raise ValueError(f"unknown model {name!r}; choose one of {', '.join(METHODS)}")
+        return cls(**{**METHODS[name].config, **overrides, "method": name})
+
+    @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
         known = {f.name for f in fields(cls)}
         d = {"output": "regress", **d}  # configurations saved before the pointer existed are the paper's model
+        if "method" not in d:  # saved before methods had names: the output says which
+            d["method"] = "ours" if d["output"] == "pointer" else "ga3ce"
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}")

@@ -1,5 +1,7 @@
 """The paper's ablations (Tables 4 and 5, docs/paper.md): one switch each, trained from the same
 store with the same recipe, evaluated on the same test frames, printed beside the paper's numbers.
+The switches apply to the base model (`ablate --model`, the paper's GA3CE by default); the rows
+`ga3ce` and `ours` train the other named method (model/methods.py) with the same recipe.
 
 Because our store's view prior is not the paper's, rows are also compared as ratios: our 3D MAE /
 our v prior's, beside the paper's 3D MAE / its appearance-only MAE. That is like for like on GFIE,
@@ -21,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from ..model import METHODS, model_label
 from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
@@ -49,14 +52,24 @@ ABLATIONS: tuple[Ablation, ...] = (
     Ablation("no-pose", "appearance + objects", {"use_pose": False}, ("x", "-", "x"), None, None, None),
     Ablation("no-ga3ce", "appearance + 3D w/o GA3CE", {"rotation": "none", "encoding": "standard"},
              ("x", "x", "x*"), None, 18.9, 21.2),
-    Ablation("full", "GA3CE (full)", {}, ("x", "x", "x"), ("x", "x", "x"), 11.1, 19.9),
+    Ablation("full", "full model", {}, ("x", "x", "x"), ("x", "x", "x"), 11.1, 19.9),
     Ablation("no-egocentric", "no egocentric transform", {"rotation": "none"}, None, ("-", "-", "x"), 14.2, 20.8),
     Ablation("no-cyclotorsion", "no cyclotorsion (axis-angle)", {"rotation": "axis_angle"}, None, ("x", "-", "x"),
              12.1, 20.1),
     Ablation("no-d3", "no D3 (standard encoding)", {"encoding": "standard"}, None, ("x", "x", "-"), 12.9, 20.9),
-    Ablation("regress", "the paper's output (regress)", {"output": "regress"}, None, None, None, None),
+    *(Ablation(m.name, m.label, {"method": m.name, **m.config}, None, None, None, None) for m in METHODS.values()),
 )
 BY_NAME = {a.name: a for a in ABLATIONS}
+
+
+def default_rows(method: str) -> list[str]:
+    """Every row for base method `method`: the paper's ablations and the other methods."""
+    return [a.name for a in ABLATIONS if a.name not in METHODS or a.name != method]
+
+
+def row_label(ab: Ablation, base_model: Any) -> str:
+    """A row's label in the tables: the full row is named by its model ("GA3CE (paper)", "ours")."""
+    return f"{model_label(base_model)} (full)" if ab.name == "full" else ab.label
 
 
 def run_done(run: Path, epochs: int) -> bool:
@@ -80,7 +93,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    names = rows or [a.name for a in ABLATIONS]
+    names = rows or default_rows(base.model.method)
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise ValueError(f"unknown ablation rows {unknown}; choose from {list(BY_NAME)}")
@@ -98,12 +111,12 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
                 log.info("ablation %s, seed %d: training into %s", name, seed, run)
                 train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
             r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads,
-                         no_objects=None)
+                         no_objects=None, compare={})
             maes.append(r["methods"]["model"]["mae3d"])
             prior_mae = r["methods"]["view_prior"]["mae3d"]
             evals.append(r)
         mae = float(np.mean(maes))
-        row = {"name": name, "label": ab.label, "table4": ab.table4, "table5": ab.table5,
+        row = {"name": name, "label": row_label(ab, base.model), "table4": ab.table4, "table5": ab.table5,
                "mae3d": mae, "mae3d_std": float(np.std(maes)) if len(maes) > 1 else None,
                "mae3d_seeds": maes, "ratio": mae / prior_mae,
                "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
@@ -114,9 +127,10 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
         results.append(row)
     profile = DatasetProfile.for_store(open_store(base.store))
     full = next((r for r in results if r["name"] == "full"), None)
-    others = [r for r in results if r["name"] != "full"]
+    others = [r for r in results if r["name"] != "full" and (r["table4"] or r["table5"])]  # the paper's rows
     full_best = None if full is None else all(full["mae3d"] < r["mae3d"] for r in others)
-    summary = {"store": str(base.store), "dataset": profile.name, "split": split, "seeds": seeds,
+    summary = {"store": str(base.store), "dataset": profile.name, "model": base.model.method,
+               "split": split, "seeds": seeds,
                "epochs": base.epochs, "train_frames": base.train_frames, "v_prior_mae3d": prior_mae,
                "paper_column": profile.paper_column, "appearance_is_v": profile.appearance_is_v,
                "rows": results, "full_best": full_best}
@@ -149,7 +163,7 @@ def _table_lines(rows: dict[str, dict], summary: dict[str, Any], table: str, mar
         r, m = rows.get(a.name), getattr(a, table)
         if r is None or m is None:
             continue
-        label = a.label if like or a.name != "appearance" else "appearance only: v (ours)"
+        label = r["label"] if like or a.name != "appearance" else "appearance only: v (ours)"
         out.append(f"{label:30s} {m[0]:>5s} {m[1]:>5s} {m[2]:>5s} | "
                    f"{_num(r['paper_' + col]):>9s} {_num(r['paper_ratio_' + col]):>6s} | "
                    f"{_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}")
@@ -169,9 +183,8 @@ def format_ablation_table(summary: dict[str, Any]) -> str:
     out += _table_lines(rows, summary, "table5", ("Ego.", "Cyc.", "D3"))
     ours = [(a, rows[a.name]) for a in ABLATIONS if a.table4 is None and a.table5 is None and a.name in rows]
     if ours:
-        out += ["", "Our departure: the full model with the paper's regressing decoder instead of the pointer "
-                "(docs/training.md \"What the objects add\")"]
-        out += [f"{a.label:30s} {'':17s} | {'':16s} | {_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}"
+        out += ["", "The other named models, same recipe (ga3ce-prep train --model; docs/training.md \"Ours\")"]
+        out += [f"{r['label']:30s} {'':17s} | {'':16s} | {_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}"
                 for a, r in ours]
     out.append("")
     out.append("ratio = 3D MAE / appearance-only 3D MAE (ours: the store's v prior on the same frames)")
@@ -179,8 +192,9 @@ def format_ablation_table(summary: dict[str, Any]) -> str:
         out.append(f"ratio+ = the paper's 3D MAE / its Appearance row, which on {summary['paper_column'].upper()} is "
                    "GAFA's own gaze module (22.9), not a view prior: not like for like with our ratio to v")
     if summary["full_best"] is True:
-        out.append("the full model is best: every ablation row has a higher 3D MAE")
+        out.append("the full model is best: every ablation row of the paper's tables has a higher 3D MAE")
     elif summary["full_best"] is False:
-        worse = [r["label"] for r in summary["rows"] if r["name"] != "full" and r["mae3d"] <= rows["full"]["mae3d"]]
+        worse = [r["label"] for r in summary["rows"] if r["name"] != "full" and (r["table4"] or r["table5"])
+                 and r["mae3d"] <= rows["full"]["mae3d"]]
         out.append("the full model is NOT best: " + ", ".join(worse) + " reached a 3D MAE at or below it")
     return "\n".join(out)

@@ -16,7 +16,7 @@ import click
 from click.core import ParameterSource
 
 from ..errors import ConfigError
-from ..model import ENCODINGS, ROTATIONS, ModelConfig
+from ..model import DEFAULT_METHOD, ENCODINGS, METHODS, ROTATIONS, ModelConfig
 from ..params import field_docs
 from ..store import ContextStore, open_store
 from .ablate import ABLATIONS, BY_NAME
@@ -73,6 +73,14 @@ def _checked_split(store: str, split: str) -> ContextStore:
     return st
 
 
+def model_option(f: Callable) -> Callable:
+    """--model NAME: the named method to train (model/methods.py), the paper's GA3CE by default."""
+    return click.option("--model", "model_name", type=click.Choice(list(METHODS)), default=DEFAULT_METHOD,
+                        show_default=True,
+                        help="The model: " + "; ".join(f"{m.name} = {m.label}: {m.summary}" for m in METHODS.values())
+                        + ". Its config is saved in each checkpoint.")(f)
+
+
 def _help(cls: type, name: str) -> str:
     doc = field_docs(cls)[name]
     return doc[:1].upper() + doc[1:] + "."
@@ -122,6 +130,7 @@ def _log_setup() -> None:
 @click.command()
 @click.option("--store", required=True, help="The 3D context store (from `ga3ce-prep run`).")
 @click.option("--out", required=True, help="Run folder: checkpoints, config.json, history.csv, curves.png.")
+@model_option
 @click.option("--ablation", type=click.Choice(list(BY_NAME)), default="full", show_default=True,
               help="Train one row of the paper's ablations (train/ablate.py::ABLATIONS): "
               + "; ".join(f"{a.name} = {a.label}" for a in ABLATIONS) + ".")
@@ -134,26 +143,33 @@ def _log_setup() -> None:
               help="Continue the run in --out from last.pt (refused if the store or options changed).")
 @click.option("--force", is_flag=True, help="Overwrite an existing run, or resume despite a store/config mismatch.")
 @click.pass_context
-def train(ctx, store, out, ablation, rotation, encoding, resume, force, model_set, **recipe):
-    """Train the GA3CE 3D gaze transformer on a store with the paper's recipe.
+def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, force, model_set, **recipe):
+    """Train a gaze model on a store with the paper's recipe: the paper's GA3CE unless --model says.
 
     \b
+    Models: ga3ce (the paper's), ours (our design; docs/training.md "Ours"); --ablation switches
+    one part of it off, as in the paper's Tables 4 and 5.
     Defaults: the paper's recipe (AdamW, weight decay 0.1, 4 warm-up epochs then cosine per step,
     gradient clip 0.1, batch 32 on GFIE and 64 on GAFA, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
     and deterministic on CPU.
-    Example: ga3ce-prep train --store synth.zarr --out runs/full --ablation no-d3
+    Example: ga3ce-prep train --store synth.zarr --out runs/ours --model ours
+    Example: ga3ce-prep train --store synth.zarr --out runs/no-d3 --ablation no-d3
     Data-parallel: torchrun --nproc-per-node 2 --no-python ga3ce-prep train ... (docs/training.md).
     """
     _log_setup()
     chosen = {k: v for k, v in (("rotation", rotation), ("encoding", encoding))
               if ctx.get_parameter_source(k) is not ParameterSource.DEFAULT} | _model_sets(model_set)
     overrides = BY_NAME[ablation].overrides
+    if (ablation in METHODS and ablation != model_name
+            and ctx.get_parameter_source("model_name") is not ParameterSource.DEFAULT):
+        raise click.UsageError(f"--ablation {ablation} trains the model {ablation}; drop --model {model_name}")
     clash = [k for k in overrides if k in chosen and chosen[k] != overrides[k]]
     if clash:
         raise click.UsageError(f"--ablation {ablation} sets {', '.join(f'{k}={overrides[k]}' for k in clash)} itself; "
                                f"drop the options that set {', '.join(clash)}")
     try:
-        model = ModelConfig(**{"rotation": rotation, "encoding": encoding, **overrides, **chosen})
+        model = dataclasses.replace(ModelConfig.for_method(model_name, rotation=rotation, encoding=encoding),
+                                    **overrides, **chosen)
     except (TypeError, ValueError) as e:
         raise ConfigError(f"model options: {e}") from None
     run = run_train(_train_config(store, out, model, **recipe), resume=resume, force=force)
@@ -225,17 +241,21 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
 @click.option("--seeds", default="0", show_default=True,
               help="Comma-separated seeds; the table shows mean +- std over them.")
 @click.option("--split", default="test", show_default=True, help="Split the rows are evaluated on.")
+@model_option
 @recipe_options
 @click.option("--force", is_flag=True, help="Retrain every row even if its run folder is complete.")
-def ablate(store, out, rows, seeds, split, force, model_set, **recipe):
-    """Train the paper's ablations and print Tables 4 and 5 beside the paper's numbers.
+def ablate(store, out, rows, seeds, split, model_name, force, model_set, **recipe):
+    """Train the paper's ablations of --model and print Tables 4 and 5 beside the paper's numbers.
+
+    The rows switch parts of the model off (the paper's GA3CE by default); the rows ga3ce and ours
+    train the other named model with the same recipe, beside them.
 
     Finished rows are reused and unfinished ones resumed, so rerunning the command continues.
     Writes OUT/ablation.json, OUT/ablation.csv and OUT/ablation.png (bar chart).
     """
     _log_setup()
     try:
-        model = ModelConfig(**_model_sets(model_set))
+        model = ModelConfig.for_method(model_name, **_model_sets(model_set))
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except (TypeError, ValueError) as e:
         raise ConfigError(f"ablate options: {e}") from None

@@ -5,10 +5,12 @@ GFIE and CAD-120, GAFA's 7-frame windows for GAFA; `frames` chooses), every one 
 "scored N of M" and, per reason, the ids of the others. Reported per method: 3D MAE, 2D MAE (GAFA
 style), front/back (true gaze z <= 0 is front; per window from its first frame under GAFA's
 windows), median, and per scene 3D and 2D (GAFA: the paper's Table 3 columns, Office = `lab`,
-Courtyard = both courtyard sessions by frames, beside the paper's row). Methods: GA3CE (the
-checkpoint), the view prior v, the head direction from the pose keypoints, and snap-to-object (v
-snapped to the nearest object within a cone whose half-angle is chosen on the validation split).
-The summary says plainly whether the model beats each baseline. Python API:
+Courtyard = both courtyard sessions by frames, beside the paper's row). Methods: the checkpoint's
+model, named by its config ("GA3CE (paper)", "ours"; model/methods.py), the other trained models
+beside it in an `ablate` folder (the other named method, the model without objects), the view
+prior v, the head direction from the pose keypoints, and snap-to-object (v snapped to the nearest
+object within a cone whose half-angle is chosen on the validation split). The summary says plainly
+whether the model beats each. Python API:
 `evaluate(store, checkpoint, split) -> metrics dict`.
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ import torch
 
 from ..errors import ConfigError
 from ..geometry import angular_error_deg
-from ..model import GA3CE
+from ..model import GA3CE, METHODS, ModelConfig, model_label
 from ..skeleton import head_direction_from_pose
 from ..store import ContextStore, open_store
 from .baselines import choose_snap_cone, snap_to_object
@@ -38,9 +40,11 @@ from .profiles import DatasetProfile
 
 log = logging.getLogger("ga3ce_prep.train")
 
-METHODS = {"model": "GA3CE (model)", "no_objects": "GA3CE, no objects (app. + pose)",
-           "view_prior": "v prior (appearance only)",
-           "head_from_pose": "head direction from pose", "snap_to_object": "snap v to object"}
+BASELINES = {"view_prior": "v prior (appearance only)", "head_from_pose": "head direction from pose",
+             "snap_to_object": "snap v to object"}
+BASELINE_NOTES = {"view_prior": "the store's view prior v itself (the appearance-only row)",
+                  "head_from_pose": "the head's facing direction from the 3D pose keypoints",
+                  "snap_to_object": "v turned to the nearest object within the cone"}
 DEFAULT_SNAP_CONE_DEG = 15.0
 
 
@@ -58,14 +62,16 @@ def predict(model: GA3CE, ds: ContextDataset, batch_size: int = 256, device: str
     return out
 
 
-def no_objects_checkpoint(checkpoint: str | Path) -> Path | None:
-    """The `no-objects` ablation's checkpoint beside a full model's in an `ablate` folder
-    (OUT/full/seed<k>/best.pt -> OUT/no-objects/seed<k>/best.pt), or None when it is not there."""
+def sibling_checkpoints(checkpoint: str | Path) -> dict[str, Path]:
+    """The other models trained beside a full model in an `ablate` folder (OUT/full/seed<k>/best.pt
+    -> OUT/<row>/seed<k>/best.pt for the named methods' rows and no-objects), by method key
+    ("ga3ce", "ours", "no_objects"); those that are there."""
     p = Path(checkpoint)
     if p.parent.parent.name != "full":
-        return None
-    other = p.parent.parent.parent / "no-objects" / p.parent.name / p.name
-    return other if other.is_file() else None
+        return {}
+    rows = {**{m: m for m in METHODS}, "no_objects": "no-objects"}
+    found = {key: p.parent.parent.parent / row / p.parent.name / p.name for key, row in rows.items()}
+    return {key: path for key, path in found.items() if path.is_file()}
 
 
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
@@ -88,7 +94,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
              json_path: str | Path | None = None, threads: int = 2, frames: str = "auto",
              data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16,
-             no_objects: str | Path | None = "auto") -> dict[str, Any]:
+             no_objects: str | Path | None = "auto", compare: dict[str, str | Path] | None = None) -> dict[str, Any]:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store (e.g. cross-dataset).
@@ -99,8 +105,10 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     dataset's root when it is not where the store's provenance says. gfm: GFIE's checkpoint, to add
     GFIE's Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth,
     gfm_batch_size frames per pass). no_objects: a checkpoint of the model without objects to score
-    beside this one (method "no_objects"), "auto" = `no_objects_checkpoint(checkpoint)` when there
-    (an `ablate` folder), None = none. Returns a dict: store, split, checkpoint, epoch, n_frames
+    beside this one (method "no_objects"), "auto" = the ablate folder's (`sibling_checkpoints`),
+    None = none. compare: other checkpoints to score beside it, {key: path}; None = the ablate
+    folder's other named models ("ga3ce", "ours") when there. Returns a dict: store, split,
+    checkpoint, epoch, labels {method: its name in tables}, n_frames
     (scored), frames (train/frameset.py ScoredFrames.as_dict: protocol, expected, scored, unscored
     {reason: [ids]}), head_sources {source: scored frames}, head_fallback_frames (scored frames whose
     head position came from a fallback), snap_cone_deg, methods {name: summarize(...)},
@@ -122,12 +130,20 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
                           "choose another --split or --frames all")
     model = build_model(ckpt).to(device)
     preds = {"model": predict(model, ds, batch_size, device, ckpt["config"].get("n_max"))}
-    no_objects = no_objects_checkpoint(checkpoint) if no_objects == "auto" else no_objects
+    config = ModelConfig.from_dict(ckpt["config"]["model"])
+    labels = {"model": model_label(config)}
+    siblings = sibling_checkpoints(checkpoint)
+    others = dict(compare) if compare is not None else {
+        k: v for k, v in siblings.items() if k in METHODS and k != config.method}
+    no_objects = siblings.get("no_objects") if no_objects == "auto" else no_objects
     if no_objects is not None:
-        other = load_checkpoint(no_objects)
-        check_checkpoint(other, no_objects, store_fingerprint(st), None, force=force)
-        preds["no_objects"] = predict(build_model(other).to(device), ds, batch_size, device,
-                                      other["config"].get("n_max"))
+        others["no_objects"] = no_objects
+    for key, path in others.items():
+        other = load_checkpoint(path)
+        check_checkpoint(other, path, store_fingerprint(st), None, force=force)
+        preds[key] = predict(build_model(other).to(device), ds, batch_size, device, other["config"].get("n_max"))
+        labels[key] = model_label(ModelConfig.from_dict(other["config"]["model"]))
+    labels |= BASELINES
     preds["view_prior"] = ds.view
     preds["head_from_pose"], pose_ok = head_direction_from_pose(ds.pose, ds.view)
     if snap_cone_deg is None:
@@ -151,6 +167,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     result: dict[str, Any] = {
         "store": str(st.path), "split": split, "checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]) + 1,
         "no_objects_checkpoint": None if no_objects is None else str(no_objects),
+        "compared_checkpoints": {k: str(v) for k, v in others.items()}, "labels": labels,
         "config": ckpt["config"], "dataset": profile.name, "n_frames": len(ds), "frames": fs.as_dict(),
         "head_sources": head_sources, "head_fallback_frames": head_fallback, "snap_cone_deg": snap_cone_deg,
         "head_from_pose_frames": int(pose_ok.sum()), "snapped_frames": int(snapped.sum()),
@@ -163,8 +180,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         result["gfm"] = evaluate_gfm(st, ds.rows, preds["model"], gfm, data, device, gfm_batch_size)
     if cdf_path is not None:
         path = Path(checkpoint).with_name(f"eval_{split}_cdf.png") if cdf_path == "auto" else Path(cdf_path)
-        errors = {METHODS["model"]: angular_error_deg(preds["model"], ds.gaze),
-                  METHODS["view_prior"]: angular_error_deg(ds.view, ds.gaze)}
+        errors = {labels[k]: angular_error_deg(p, ds.gaze) for k, p in preds.items()
+                  if k not in ("head_from_pose", "snap_to_object")}
         result["cdf_png"] = str(plot_cdf(errors, path, f"{Path(st.path).name}: {split}, {len(ds)} frames"))
     if json_path is not None:
         Path(json_path).write_text(json.dumps(result, indent=2, default=float))
@@ -208,7 +225,7 @@ def format_scene_table(result: dict[str, Any]) -> list[str]:
     w = 13
     lines = ["per scene: 3D / 2D MAE (deg); All over frames",
              f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
-    for key, label in METHODS.items():
+    for key, label in result["labels"].items():
         if key not in m:
             continue
         ps = m[key]["per_scene"]
@@ -220,9 +237,9 @@ def format_scene_table(result: dict[str, Any]) -> list[str]:
     lines.append(f"{'frames':34s} "
                  + " ".join(f"{n:>{w}d}" for n in [*(m['model']['per_scene'][c]['n'] for c in cols), m['model']['n']]))
     if result.get("paper_rows"):
-        lines.append("(GA3CE (paper): Table 3's per-scene cells are not in our sources, '-'; its All 3D is the full "
-                     "model of Tables 4/5. GAFA's README: its released GazeNet, averaged per batch of 32 windows; "
-                     "ours are per frame)")
+        lines.append("(GA3CE, the paper's figure: Table 3's per-scene cells are not in our sources, '-'; its "
+                     "All 3D is the full model of Tables 4/5. GAFA's README: its released GazeNet, averaged per "
+                     "batch of 32 windows; ours are per frame)")
     return lines
 
 
@@ -234,7 +251,7 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
     per_window = " (front/back per window)" if result["frames"]["protocol"] == "windows" else ""
     lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} "
                  f"{'front3D':>7s} {'back3D':>7s}{per_window}")
-    for key, label in METHODS.items():
+    for key, label in result["labels"].items():
         if key not in m:
             continue
         if key == "snap_to_object":
@@ -245,10 +262,12 @@ def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
     lines.append(f"{'frames':34s} {'':>7s} {'':>7s} {'':>7s} "
                  f"{m['model']['front']['n']:>7d} {m['model']['back']['n']:>7d}")
     lines.append("")
-    lines.append(f"model / v prior = {result['ratio_to_prior']:.3f} (3D MAE); the paper on GFIE: 11.1 / 19.4 = 0.572")
+    name = result["labels"]["model"]
+    lines.append(f"{name} / v prior = {result['ratio_to_prior']:.3f} (3D MAE); the paper on GFIE: 11.1 / 19.4 = 0.572")
+    lines.append(f"{name}:")
     for key, beats in result["beats"].items():
         d = m[key]["mae3d"] - m["model"]["mae3d"]
-        lines.append(f"  {'beats' if beats else 'does NOT beat'} {METHODS[key]}: "
+        lines.append(f"  {'beats' if beats else 'does NOT beat'} {result['labels'][key]}: "
                      f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f}"
                      + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key]['mae3d']:.0%})"
                         if key == "no_objects" else ")"))

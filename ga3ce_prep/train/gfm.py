@@ -43,7 +43,7 @@ from ..store import ContextStore
 log = logging.getLogger("ga3ce_prep.train")
 
 # name -> label, in GFIE's Table 1 order
-GFM_METHODS = {"gfie": "GFIE", "ours": "Ours", "ours_gfm": "Ours + GFM"}
+GFM_METHODS = {"gfie": "GFIE", "ours": "Ours", "ours_gfm": "Ours + GFM"}   # "Ours": the evaluated model
 METRICS = ("auc", "l2", "dist3d", "angle3d")
 
 

@@ -61,7 +61,7 @@ def plot_cdf(errors: dict[str, np.ndarray], path: str | Path, title: str = "") -
 
 def plot_per_scene(methods: dict[str, dict[str, Any]], labels: dict[str, str], path: str | Path) -> Path:
     """Bars of the 3D MAE per scene (and over all frames), one bar per method: `methods` is an
-    evaluation's {key: summarize(...)}, `labels` {key: legend label} (evaluate.METHODS)."""
+    evaluation's {key: summarize(...)}, `labels` {key: legend label} (the evaluation's labels)."""
     plt = _pyplot()
     first = next(iter(methods.values()))
     scenes = list(first["per_scene"])

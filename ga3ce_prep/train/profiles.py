@@ -59,7 +59,7 @@ class DatasetProfile:
 GAFA_SCENES = (("Office", "lab"), ("Living room", "living_room"), ("Kitchen", "kitchen"),
                ("Library", "library"), ("Courtyard", "courtyard"))
 GAFA_PAPER_ROWS = (
-    ("GA3CE (paper)", (("All", (19.9, None)),)),
+    ("GA3CE, the paper's figure", (("All", (19.9, None)),)),
     ("GAFA GazeNet (its README)", (("All", (21.688675, 20.889896)),)),
 )
 

@@ -24,7 +24,7 @@ from ..errors import Ga3ceError
 from ..store import open_store
 from .checkpoint import build_model, load_checkpoint
 from .dataset import ContextDataset
-from .evaluate import METHODS, evaluate, format_eval_table
+from .evaluate import evaluate, format_eval_table
 from .figures import make_figures
 from .plots import plot_ablation, plot_curves, plot_per_scene
 
@@ -120,15 +120,17 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
     figs = make_figures(build_model(ckpt).to(device), ContextDataset(st, split), out, frames,
                         ckpt["config"].get("n_max"), data, device)
 
-    model_keys = ("rotation", "encoding", "use_pose", "use_objects", "use_context", "cone_bias")
+    model_keys = ("output", "rotation", "encoding", "use_pose", "use_objects", "use_context", "cone_bias")
     summary = {"run": str(run), "store": str(store_path), "split": f"{split}, {result['n_frames']} frames",
                "checkpoint": f"{checkpoint} (epoch {result['epoch']} of {config.get('epochs')})",
-               "model": ", ".join(f"{k}={config['model'][k]}" for k in model_keys if k in config["model"]),
+               "model": result["labels"]["model"] + " ("
+               + ", ".join(f"{k}={config['model'][k]}" for k in model_keys if k in config["model"]) + ")",
                "ga3ce-prep": __version__}
     rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in summary.items())
     curves = plot_curves(history, out / "curves.png")
-    per_scene = plot_per_scene(result["methods"], METHODS, out / "per_scene.png")
-    parts = [f"<h1>GA3CE run report: {html.escape(str(run))}</h1><table>{rows}</table>",
+    per_scene = plot_per_scene(result["methods"], result["labels"], out / "per_scene.png")
+    parts = [f"<h1>Run report, {html.escape(result['labels']['model'])}: {html.escape(str(run))}</h1>"
+             f"<table>{rows}</table>",
              _section("Evaluation", _pre(format_eval_table(result))),
              _section("Training curves", _img(curves, "training loss and validation 3D MAE per epoch; "
                                                       "the dashed line is the validation v prior")),

@@ -1,0 +1,58 @@
+"""The trainable methods by name, the way `ga3ce-prep train --model NAME` chooses them.
+
+- `ga3ce`: the paper's GA3CE, the default everywhere. Its 3D gaze transformer reads the subject
+  token against the objects (encoder over [null token, objects], decoder over the subject token,
+  the gaze-cone bias in cross-attention) and regresses g' (ModelConfig.output "regress").
+- `ours`: our design, whatever it is at the time (its full config is saved in each checkpoint).
+  Today: GA3CE's egocentric transform and encodings with a pointer output: a first pass without
+  objects gives g0, then g is g0 or an object's direction near it (output "pointer";
+  docs/training.md, "Ours").
+
+A method is a set of ModelConfig values (`ModelConfig.for_method(name)` builds it); an ablation
+(train/ablate.py) switches parts of it off. `model_label` names any config for the printed tables.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .ga3ce import ModelConfig
+
+
+@dataclass(frozen=True)
+class Method:
+    """A named model: its ModelConfig values and how tables name it."""
+
+    name: str                 # `--model NAME`
+    label: str                # its row in every printed table
+    summary: str              # one line: what it is
+    config: dict[str, Any] = field(default_factory=dict)   # ModelConfig fields it sets
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("ga3ce", "GA3CE (paper)",
+           "the paper's model: a 3D gaze transformer over the objects regresses the gaze",
+           {"output": "regress"}),
+    Method("ours", "ours",
+           "GA3CE's encodings; a pass without objects gives g0, then g points at g0 or an object near it",
+           {"output": "pointer"}),
+)}
+DEFAULT_METHOD = "ga3ce"
+NO_OBJECTS_LABEL = "no objects (app. + pose)"
+SWITCHES = ("output", "rotation", "encoding", "use_pose", "cone_bias")   # the design switches a label names
+APPEARANCE_LABEL = "appearance only (v)"
+
+
+def model_label(config: ModelConfig) -> str:
+    """A config's name in tables: its method's label, or the ablation that leaves the objects or the
+    whole context out (the same network whichever method it came from); a design switch that
+    differs from the method's own value is named after it ("GA3CE (paper), use_pose=False"). Sizes
+    and scales do not rename a model."""
+    if not config.use_context:
+        return APPEARANCE_LABEL
+    if not config.use_objects:
+        return NO_OBJECTS_LABEL
+    own = type(config).for_method(config.method)
+    changed = [f"{k}={getattr(config, k)}" for k in SWITCHES if getattr(config, k) != getattr(own, k)]
+    return ", ".join([METHODS[config.method].label, *changed])
