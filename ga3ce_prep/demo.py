@@ -82,8 +82,7 @@ def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, w
     _done(t0)
 
     labels = result["labels"]
-    notes = {"model": f"the paper's model: {METHODS['ga3ce'].summary}",
-             "ours": f"our design: {METHODS['ours'].summary}",
+    notes = {"model": METHODS["ga3ce"].summary, "ours": f"our design: {METHODS['ours'].summary}",
              "no_objects": "the same network without the objects (the paper's appearance + pose row)",
              **BASELINE_NOTES}
     click.echo("\nthe rows:")
