@@ -8,12 +8,13 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
-from ga3ce_prep.model import ModelConfig
+from ga3ce_prep.model import GA3CE, METHODS, ModelConfig
 from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
 from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.ablate import default_rows
 from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
+from ga3ce_prep.train.trainer import run_done
 
 torch.set_num_threads(2)
 # the paper's widths with fewer layers: the training machinery is what these tests exercise
@@ -262,3 +263,28 @@ def test_cli_recipe_options_are_the_config_fields():
     text = " ".join(res.output.split())
     assert "ga3ce = GA3CE (paper)" in text and "[default: ga3ce]" in text
     assert TrainConfig().model.method == "ga3ce" and TrainConfig().model.output == "regress"   # the paper's
+
+
+def test_frozen_g0_is_the_no_objects_twin(store, tmp_path):
+    """pointer_g0 frozen: the run trains the no-objects model first (g0/, same recipe and seed: the
+    very weights of the no-objects row), keeps them, and trains the pointer alone on top."""
+    ours = ModelConfig.for_method("ours", pointer_g0="frozen", **SMALL)
+    run = train(_cfg(store, tmp_path / "ours", model=ours))
+    twin = train(_cfg(store, tmp_path / "bare", model=ModelConfig(use_objects=False, **SMALL)))
+    g0, bare, final = _weights(run / "g0"), _weights(twin), _weights(run)
+    assert _same(g0, bare)
+    assert _same(bare, {k: final[k] for k in bare})                       # frozen: unchanged by the pointer stage
+    torch.manual_seed(0)                                                  # the run's initial weights
+    init = GA3CE(ours).state_dict()
+    assert all(not torch.equal(final[k], v) for k, v in init.items() if k.startswith("pointer."))   # trained
+    r = evaluate(store, run / "best.pt", split="test", cdf_path=None,
+                 no_objects=run / "g0" / "best.pt")
+    name = "ours" if METHODS["ours"].config.get("pointer_g0") == "frozen" else "ours, pointer_g0=frozen"
+    assert r["labels"] == {**r["labels"], "model": name, "no_objects": "no objects (app. + pose)"}
+    assert run_done(run, 2) and run_done(run / "g0", 2)
+    # resumed when finished, the g0 stage is reused; resumed with more epochs, both continue
+    mtime = (run / "g0" / "best.pt").stat().st_mtime
+    train(_cfg(store, tmp_path / "ours", model=ours), resume=True)
+    assert (run / "g0" / "best.pt").stat().st_mtime == mtime
+    train(_cfg(store, tmp_path / "ours", model=ours, epochs=3), resume=True, force=True)
+    assert run_done(run / "g0", 3) and run_done(run, 3)

@@ -5,7 +5,7 @@
     F_object = D3(P'_obj) (256 each), after a learned null token
     output "regress" (the paper's, the default; method "ga3ce"):
         g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
-    output "pointer" (method "ours"; docs/training.md "Ours"):
+    output "pointer" (method "ours"; docs/training.md "The output"):
         g0' = MLP(decoder(E_subject | encoder(null token))),  g0 = normalise(R^T g0' + v)
         p = softmax(q(E_subject) . k([null, F_object]) + kappa (cos(g0, u_i) - 1)),  g = p_null g0 + sum p_i u_i
 
@@ -29,6 +29,7 @@ from .rotation import ROTATIONS
 from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
 
 OUTPUTS: tuple[str, ...] = ("pointer", "regress")
+POINTER_G0: tuple[str, ...] = ("joint", "frozen")
 
 
 @dataclass
@@ -55,7 +56,7 @@ class ModelConfig:
     use_context: bool = True  # False is "appearance only": g = v, no parameters are used
     output: str = (
         # regress (the paper's: g = R^T MLP(decoder over the objects) + v) or pointer
-        # (ours, docs/training.md "Ours": a first pass without objects gives g0, then g
+        # (ours, docs/training.md "The output": a first pass without objects gives g0, then g
         # points at g0 or at an object, transformer.ObjectPointer)
         "regress")
     cone_bias: bool = (
@@ -63,6 +64,11 @@ class ModelConfig:
         # (the paper); pointer adds pointer_kappa (cos(g0, object direction) - 1) to its logits
         True)
     cone_bias_scale: float = 1.0  # regress: multiplies the paper's gaze-cone bias (1 = the paper)
+    pointer_g0: str = (
+        # pointer: how g0's network is trained: joint (with the pointer; its arccos loss
+        # weighted by TrainConfig.first_pass_loss) or frozen (the no-objects model is
+        # trained first, into the run's g0/ folder, then frozen; the pointer trains on top)
+        "joint")
     pointer_kappa: float = (
         # pointer: sharpness of the cone around g0 (300: an object 5 degrees off
         # g0 loses 1.1 to the null token, 10 degrees off 4.6; chosen on val)
@@ -100,6 +106,8 @@ class ModelConfig:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
         if self.output not in OUTPUTS:
             raise ValueError(f"output must be one of {OUTPUTS}, got {self.output!r}")
+        if self.pointer_g0 not in POINTER_G0:
+            raise ValueError(f"pointer_g0 must be one of {POINTER_G0}, got {self.pointer_g0!r}")
         if self.encoding not in ENCODINGS:
             raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
         subject = self.view_width + len(GA3CE_JOINTS) * self.joint_width
@@ -156,6 +164,26 @@ class GA3CE(nn.Module):
         self.head = MLPHead(c.d_model, c.head_hidden)
         if c.output == "pointer" and c.use_objects:  # nothing to point at without objects: no unused weights
             self.pointer = ObjectPointer(c.d_model)
+
+    @property
+    def g0_frozen(self) -> bool:
+        """Whether g0's network is the no-objects model, trained first and frozen (pointer_g0)."""
+        c = self.config
+        return c.use_context and c.use_objects and c.output == "pointer" and c.pointer_g0 == "frozen"
+
+    def g0_state_dict_keys(self) -> list[str]:
+        """The weights of g0's network: every weight but the pointer's."""
+        return [k for k in self.state_dict() if not k.startswith("pointer.")]
+
+    def train(self, mode: bool = True) -> GA3CE:
+        """nn.Module.train; a frozen g0 network stays in eval mode (no dropout: g0 is the no-objects
+        model's own estimate)."""
+        super().train(mode)
+        if mode and self.g0_frozen:
+            for name, child in self.named_children():
+                if name != "pointer":
+                    child.eval()
+        return self
 
     def subject_embedding(self, view_ego: torch.Tensor, pose_ego: torch.Tensor,
                           joint_valid: torch.Tensor) -> torch.Tensor:

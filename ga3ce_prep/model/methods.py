@@ -6,7 +6,7 @@
 - `ours`: our design, whatever it is at the time (its full config is saved in each checkpoint).
   Today: GA3CE's egocentric transform and encodings with a pointer output: a first pass without
   objects gives g0, then g is g0 or an object's direction near it (output "pointer";
-  docs/training.md, "Ours").
+  docs/training.md, "The output").
 
 A method is a set of ModelConfig values (`ModelConfig.for_method(name)` builds it); an ablation
 (train/ablate.py) switches parts of it off. `model_label` names any config for the printed tables.
@@ -40,7 +40,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 )}
 DEFAULT_METHOD = "ga3ce"
 NO_OBJECTS_LABEL = "no objects (app. + pose)"
-SWITCHES = ("output", "rotation", "encoding", "use_pose", "cone_bias")   # the design switches a label names
+# the design switches a label names
+SWITCHES = ("output", "pointer_g0", "rotation", "encoding", "use_pose", "cone_bias")
 APPEARANCE_LABEL = "appearance only (v)"
 
 

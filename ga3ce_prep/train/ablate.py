@@ -28,7 +28,7 @@ from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
 from .profiles import DatasetProfile
-from .trainer import TrainConfig, train
+from .trainer import TrainConfig, run_done, train
 
 log = logging.getLogger("ga3ce_prep.train")
 
@@ -70,17 +70,6 @@ def default_rows(method: str) -> list[str]:
 def row_label(ab: Ablation, base_model: Any) -> str:
     """A row's label in the tables: the full row is named by its model ("GA3CE (paper)", "ours")."""
     return f"{model_label(base_model)} (full)" if ab.name == "full" else ab.label
-
-
-def run_done(run: Path, epochs: int) -> bool:
-    """Whether the run folder holds a finished run of `epochs` epochs (best.pt and the last epoch in
-    history.csv)."""
-    hist = run / "history.csv"
-    if not (run / "best.pt").exists() or not hist.exists():
-        return False
-    with open(hist) as f:
-        rows = list(csv.DictReader(f))
-    return bool(rows) and int(rows[-1]["epoch"]) + 1 >= epochs
 
 
 def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, seeds: list[int] | None = None,

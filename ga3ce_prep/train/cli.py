@@ -147,7 +147,7 @@ def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, for
     """Train a gaze model on a store with the paper's recipe: the paper's GA3CE unless --model says.
 
     \b
-    Models: ga3ce (the paper's), ours (our design; docs/training.md "Ours"); --ablation switches
+    Models: ga3ce (the paper's), ours (our design; docs/training.md "The output"); --ablation switches
     one part of it off, as in the paper's Tables 4 and 5.
     Defaults: the paper's recipe (AdamW, weight decay 0.1, 4 warm-up epochs then cosine per step,
     gradient clip 0.1, batch 32 on GFIE and 64 on GAFA, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded

@@ -75,6 +75,13 @@ class Ranks:
         dist.all_reduce(t)
         return float(t.item())
 
+    def barrier(self) -> None:
+        """Wait until every rank gets here (e.g. until rank 0 has written a checkpoint)."""
+        if self.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+
     def leave(self) -> None:
         import torch.distributed as dist
 

@@ -7,7 +7,9 @@ uninterrupted one.
 
 A run folder holds: config.json, last.pt (written atomically after every epoch, with the optimiser,
 for --resume), best.pt (lowest validation 3D MAE), history.csv and curves.png (loss and val MAE per
-epoch). Python API: `train(TrainConfig(store=..., out=...)) -> run folder`. Under torchrun the
+epoch); a pointer model whose g0 is frozen (ModelConfig.pointer_g0) also holds g0/, the run of the
+no-objects model it starts from (trained first with the same recipe and seed). Python API:
+`train(TrainConfig(store=..., out=...)) -> run folder`. Under torchrun the
 same call trains data-parallel (distributed.py): the global batch stays `batch_size` frames.
 """
 from __future__ import annotations
@@ -149,6 +151,30 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1))).mean())
 
 
+def run_done(run: Path, epochs: int) -> bool:
+    """Whether the run folder holds a finished run of `epochs` epochs (best.pt and the last epoch in
+    history.csv)."""
+    hist = run / "history.csv"
+    if not (run / "best.pt").exists() or not hist.exists():
+        return False
+    with open(hist) as f:
+        rows = list(csv.DictReader(f))
+    return bool(rows) and int(rows[-1]["epoch"]) + 1 >= epochs
+
+
+def g0_run(config: TrainConfig, resume: bool = False, force: bool = False) -> Path:
+    """The no-objects model a frozen-g0 pointer model starts from, with config's recipe and seed in
+    config.out/g0: reused when finished, else resumed or trained (train's resume and force mean
+    the same for it as for the run); returns its best.pt."""
+    run = Path(config.out) / "g0"
+    g0 = replace(config, out=str(run), model=replace(config.model, use_objects=False))
+    overwrite = force and not resume
+    if overwrite or not run_done(run, config.epochs):
+        log.info("training g0, the model without objects, into %s", run)
+        train(g0, resume=(run / "last.pt").exists() and not overwrite, force=force)
+    return run / "best.pt"
+
+
 def _splits(config: TrainConfig, store: ContextStore) -> tuple[ContextDataset, ContextDataset | None]:
     """The training frames and the validation frames (None when the store has none)."""
     train_ds = ContextDataset(store, "train", max_frames=config.train_frames)
@@ -252,9 +278,19 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
                                                      "batch_size_resolved": batch_size,
                                                      "store_fingerprint": fingerprint}, indent=2))
 
-    # the model (initial weights drawn from the seed); appearance only has nothing to train
+    # the model (initial weights drawn from the seed); appearance only has nothing to train; a
+    # frozen g0 network takes the no-objects model's weights (trained first) and keeps them
     torch.manual_seed(config.seed)
     model = GA3CE(config.model).to(device)
+    if model.g0_frozen:
+        g0_best = g0_run(config, resume, force)
+        ranks.barrier()   # rank 0 has written g0's best.pt
+        g0 = load_checkpoint(g0_best)["model"]
+        missing, unexpected = model.load_state_dict(g0, strict=False)
+        if unexpected or any(not k.startswith("pointer.") for k in missing):
+            raise CheckpointError(f"{out / 'g0'}: not the no-objects twin of this model ({unexpected or missing})")
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith("pointer."))
     state: dict[str, Any] = {"config": cfg, "store_fingerprint": fingerprint}
     prior = _mean_angle_deg(val_ds.view, val_ds.gaze) if val_ds else float("nan")
     if not config.model.use_context:
