@@ -176,7 +176,7 @@ class CropPoseEstimator:
         image, K (3, 3) and a body box (4,) pixels, and the crop's geometry."""
         o = self.o
         geo = look_at_crop(K, box, self.model.resolution, o.box_scale)
-        linear = warp_homography(cv2.LUT(rgb, self.lut), geo.H, geo.size)
+        linear = warp_homography(cv2.LUT(rgb, self.lut), geo.H, geo.size, geo.zoom)
         lo, hi = o.value_range
         x = lo + (hi - lo) * np.power(np.clip(linear, 0.0, None), o.gamma_aug / o.gamma)
         if o.input_dtype == "uint8":

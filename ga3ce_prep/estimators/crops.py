@@ -110,12 +110,15 @@ class LookAtCrop:
     K: (3, 3) its intrinsics K' = [[s fx, 0, size/2], [0, s fy, size/2], [0, 0, 1]] (crop pixels,
     index coordinates); R: (3, 3) camera frame -> crop camera frame, p_crop = R p_cam (its rows are
     the crop camera's axes in the camera frame; row vectors go back with `points @ R`); H: (3, 3)
-    image pixels -> crop pixels, K' R K^-1 (index coordinates); size: the crop's side, pixels."""
+    image pixels -> crop pixels, K' R K^-1 (index coordinates); size: the crop's side, pixels;
+    zoom: s, crop pixels per image pixel along the turned optical axis (MeTRAbs's crop scale,
+    which picks the antialiasing pyramid level, `pyramid_level`)."""
 
     K: np.ndarray
     R: np.ndarray
     H: np.ndarray
     size: int
+    zoom: float
 
 
 def look_at_crop(K: np.ndarray, box: np.ndarray, size: int, scale: float = 1.0,
@@ -138,7 +141,7 @@ def look_at_crop(K: np.ndarray, box: np.ndarray, size: int, scale: float = 1.0,
     extent = max(np.linalg.norm(side[0] - side[2]), np.linalg.norm(side[1] - side[3]))
     s = size / (scale * extent)
     Kc = np.array([[s * K[0, 0], 0.0, size / 2], [0.0, s * K[1, 1], size / 2], [0.0, 0.0, 1.0]])
-    return LookAtCrop(Kc, R, Kc @ R @ np.linalg.inv(K), int(size))
+    return LookAtCrop(Kc, R, Kc @ R @ np.linalg.inv(K), int(size), float(s))
 
 
 def _pyramid_down(image: np.ndarray) -> np.ndarray:
@@ -148,30 +151,34 @@ def _pyramid_down(image: np.ndarray) -> np.ndarray:
     return cv2.resize(image[:2 * h, :2 * w], (w, h), interpolation=cv2.INTER_AREA)  # exactly 2x: the 2x2 mean
 
 
-def warp_homography(image: np.ndarray, H: np.ndarray, size: int, levels: int = 3) -> np.ndarray:
+def pyramid_level(zoom: float, levels: int = 3) -> int:
+    """The antialiasing pyramid level MeTRAbs reads for a crop of zoom s (crop pixels per image
+    pixel): floor(-log2 s), clipped to 0..levels-1, so level l serves shrinks by 2^l up to 2^(l+1)."""
+    return int(np.clip(np.floor(-np.log2(max(float(zoom), 1e-12))), 0, levels - 1))
+
+
+def warp_homography(image: np.ndarray, H: np.ndarray, size: int, zoom: float, levels: int = 3) -> np.ndarray:
     """The size x size bilinear warp of an (H, W[, C]) image by the homography H (3, 3) (image
     pixels -> output pixels, index coordinates), zeros outside the image, float32.
 
-    Antialiasing as MeTRAbs's warp does it: where the output shrinks the image by 2^l or more at
-    its centre (l < levels), it reads level l of a 2x2 box-average pyramid. Only the part of the
-    image the output sees enters the pyramid."""
+    Antialiasing as MeTRAbs's warp does it: the warp reads level `pyramid_level(zoom, levels)` of
+    a 2x2 box-average pyramid of the whole image, zoom being the crop's scale (`LookAtCrop.zoom`;
+    above 1/2: the image itself). Level l's pixel j averages image pixels 2^l j .. 2^l (j + 1) - 1,
+    centred on 2^l j + (2^l - 1) / 2. Only the part of the image the output sees is pooled, cut
+    on multiples of 2^l, so its blocks are the whole image's."""
     Hi = np.linalg.inv(np.asarray(H, np.float64))
-    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [-0.5, size - 0.5, 1], [size - 0.5, size - 0.5, 1],
-                        [(size - 1) / 2, (size - 1) / 2, 1]])
+    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [-0.5, size - 0.5, 1], [size - 0.5, size - 0.5, 1]])
     src = corners @ Hi.T
     h, w = image.shape[:2]
+    level = pyramid_level(zoom, levels)
     x0, y0, x1, y1 = 0, 0, w, h
-    if (src[:, 2] > 0).all():  # the footprint's bounding box, a margin of one top-level pixel
+    if (src[:, 2] > 0).all():  # the footprint's bounding box, a margin of 2^levels pixels for the bilinear taps
         xy = src[:, :2] / src[:, 2:]
-        m = 2 ** levels
-        x0, y0 = (max(0, int(np.floor(c)) - m) for c in xy[:4].min(0))
-        x1, y1 = (min(n, int(np.ceil(c)) + m) for c, n in zip(xy[:4].max(0), (w, h)))
+        m, b = 2 ** levels, 2 ** level
+        x0, y0 = (max(0, int(np.floor(c)) - m) // b * b for c in xy.min(0))
+        x1, y1 = (min(n, int(np.ceil(c)) + m) for c, n in zip(xy.max(0), (w, h)))
     if x1 <= x0 or y1 <= y0:
         return np.zeros((size, size, *image.shape[2:]), np.float32)
-    # source pixels per output pixel at the centre: the inverse map's Jacobian there
-    c, (u, v) = src[4], src[4, :2] / src[4, 2]
-    J = (Hi[:2, :2] - np.outer([u, v], Hi[2, :2])) / c[2]
-    level = int(np.clip(np.floor(0.5 * np.log2(max(abs(np.linalg.det(J)), 1e-12))), 0, levels - 1))
     img = image[y0:y1, x0:x1].astype(np.float32, copy=False)
     done = 0
     while done < level and min(img.shape[:2]) >= 2:
@@ -183,4 +190,5 @@ def warp_homography(image: np.ndarray, H: np.ndarray, size: int, levels: int = 3
 
 
 __all__ = ["BORDERS", "LookAtCrop", "SquareRoi", "apply_affine", "box_roi", "continuous_to_index", "crop",
-           "invert_affine", "letterbox_roi", "look_at_crop", "roi_affine", "rotation_2d", "warp_homography"]
+           "invert_affine", "letterbox_roi", "look_at_crop", "pyramid_level", "roi_affine", "rotation_2d",
+           "warp_homography"]

@@ -27,7 +27,7 @@ EXPORT_HINT = ("write it with scripts/export_crop_pose.py from your MeTRAbs (or 
 class CropPose(ProcessEstimator, PoseBackend):
     """The shared runner: `load_model()` is the only difference between the backends."""
 
-    version = "1"
+    version = "2"  # 2: the antialiasing pyramid level and block phase are MeTRAbs's
     needs = ("depth",)
 
     def load_model(self):
