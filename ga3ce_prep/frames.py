@@ -202,9 +202,45 @@ def depth_type_fault(d: np.ndarray) -> str:
     return ""
 
 
+NPY_MAGIC = b"\x93NUMPY"
+PICKLED = "pickled objects are never loaded"
+
+
+def _what_it_is(head: bytes) -> str:
+    """What a file that is not a .npy array holds, from its first bytes."""
+    if not head:
+        return "nothing (an empty file)"
+    if head.startswith(b"PK"):
+        return "a zip archive (an .npz?)"
+    if head[:1] == b"\x80":
+        return "a Python pickle"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return f"binary data starting {head[:8]!r}"
+    line = text.splitlines()[0] if text.strip() else text
+    return f"text ({line[:40]!r}{'...' if len(line) > 40 else ''})"
+
+
+def load_npy(path: str | Path) -> np.ndarray:
+    """The array of a .npy file, read without ever unpickling (allow_pickle=False). ValueError
+    saying what the file holds instead when it is not a numeric .npy array: another format (text,
+    a pickle, an archive), or an array of Python objects."""
+    with open(path, "rb") as f:
+        head = f.read(64)
+    if not head.startswith(NPY_MAGIC):
+        raise ValueError(f"not a numeric .npy array: it holds {_what_it_is(head)}; {PICKLED}")
+    try:
+        return np.load(path, allow_pickle=False)
+    except ValueError as e:
+        if "allow_pickle" in str(e):  # an array of Python objects: only a pickle could read it
+            raise ValueError(f"not a numeric .npy array: it holds Python objects (dtype object); {PICKLED}") from None
+        raise
+
+
 def read_depth(path: str | Path, check: bool = True) -> np.ndarray:
-    """A depth file's stored values as (H, W), unscaled: `.npy` arrays read with allow_pickle=False
-    (GFIE: float metres, NaN holes), images with OpenCV (CAD-120: 16-bit PNG millimetres, 0
+    """A depth file's stored values as (H, W), unscaled: `.npy` arrays read by `load_npy`, never
+    unpickled (GFIE: float metres, NaN holes), images with OpenCV (CAD-120: 16-bit PNG millimetres, 0
     invalid). FrameError naming the file if it is missing, unreadable, or (check) not a depth map
     in any unit (`depth_type_fault`)."""
     path = Path(path)
@@ -212,7 +248,7 @@ def read_depth(path: str | Path, check: bool = True) -> np.ndarray:
         raise FrameError(f"depth file not found: {path}")
     if path.suffix == ".npy":
         try:
-            d = np.load(path, allow_pickle=False)
+            d = load_npy(path)
         except (OSError, ValueError, EOFError) as e:
             raise FrameError(f"cannot read depth {path}: {e}") from e
     else:

@@ -19,12 +19,16 @@ the store, and a digest of the root attributes themselves (`verify_store` checks
 chunked along the first axis only (Zstd).
 
 Write with `StoreWriter` (appends blocks, memory bounded by one chunk per array); read with
-`open_store`, which loads every array into memory (a few KB per frame) and needs no torch.
+`open_store`, which first checks every file against the integrity record (`verify=False` skips
+that), then loads every array into memory (a few KB per frame) and needs no torch.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
+import os
+import time
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -37,6 +41,8 @@ from zarr.codecs import ZstdCodec
 from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
+
+log = logging.getLogger("ga3ce_prep.store")
 
 # 1.1: attrs["summary"] holds FinalizeCounts under its own field names; 1.2: frames/view_source;
 # 1.3: attrs["integrity"]; 1.4: frames/head_source
@@ -83,6 +89,7 @@ GROUPS = {"frames": FRAME_ARRAYS, "objects": OBJECT_ARRAYS, "failures": FAILURE_
 CHUNK_BYTES = 2 << 20
 REBUILD = ("rebuild the store by rerunning the `ga3ce-prep run` command that wrote it (its work directory's "
            "cache makes that quick), or restore a copy")
+RECORD_SINCE = (1, 3)  # the first schema version whose stores carry the integrity record
 
 
 def _chunk_rows(dtype: Any, trailing: tuple[int, ...]) -> int:
@@ -298,12 +305,70 @@ def verify_store(path: str | Path) -> None:
     StoreError naming each damaged array and chunk, and the fix."""
     problems = store_problems(path)
     if problems:
-        raise _damaged(str(path), problems)
+        try:
+            attrs = _open_root(str(path))[1]
+        except StoreError:
+            attrs = None
+        raise _damaged(str(path), problems, attrs)
 
 
-def _damaged(path: str, problems: list[str]) -> StoreError:
+# A local store verified intact in this process: its real path -> the stat of its files then
+# (`_stat_signature`). `open_store` verifies it again only when a file changed, appeared or went.
+_verified: dict[str, tuple] = {}
+SETTLED_S = 2.0  # files changed more recently than this are not memoised (timestamps are coarse)
+
+
+def _stat_signature(path: str) -> tuple[str, tuple] | None:
+    """(real path, every file's path, size, inode, mtime and ctime) of a local store whose files all
+    settled (unchanged for SETTLED_S); None for a remote store or one changed that recently. A write
+    changes the ctime, which a user cannot set back, so an unchanged signature is unchanged files."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    fs, root = _fs(path)
+    if not isinstance(fs, LocalFileSystem):
+        return None
+    root = os.path.realpath(root)
+    recent = time.time_ns() - int(SETTLED_S * 1e9)
+    files = []
+    for dirpath, _, names in os.walk(root):
+        for name in names:
+            f = os.path.join(dirpath, name)
+            try:
+                st = os.stat(f)
+            except OSError:  # gone meanwhile: verify_store says what is missing
+                return None
+            if max(st.st_mtime_ns, st.st_ctime_ns) > recent:
+                return None
+            files.append((os.path.relpath(f, root), st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns))
+    return root, tuple(sorted(files))
+
+
+def _verify_once(path: str) -> None:
+    """`verify_store`, unless this process found the store intact before and none of its files
+    changed since (`_stat_signature`)."""
+    signature = _stat_signature(path)
+    if signature is not None and _verified.get(signature[0]) == signature[1]:
+        return
+    verify_store(path)
+    if signature is not None:
+        _verified[signature[0]] = signature[1]
+
+
+def rebuild_hint(path: str, attrs: dict[str, Any] | None = None) -> str:
+    """How to rebuild the store at `path`: REBUILD, with the command as its root attributes record it
+    (pipeline file, dataset root, --limit) when they are readable."""
+    try:
+        pipeline, root = attrs["pipeline"]["file"], attrs["dataset"]["root"]
+        limit = (attrs.get("run") or {}).get("limit")
+    except (KeyError, TypeError):
+        return REBUILD
+    command = f"ga3ce-prep run --pipeline {pipeline} --data {root} --out {path}{f' --limit {limit}' if limit else ''}"
+    return REBUILD.replace(", or restore", f": `{command}`, with the --set options it had; or restore")
+
+
+def _damaged(path: str, problems: list[str], attrs: dict[str, Any] | None = None) -> StoreError:
     shown = "; ".join(problems[:10]) + (f"; ... {len(problems) - 10} more" if len(problems) > 10 else "")
-    return StoreError(f"{path} is damaged: {shown}; {REBUILD}")
+    return StoreError(f"{path} is damaged: {shown}; {rebuild_hint(path, attrs)}")
 
 
 def validate_store_attrs(attrs: dict[str, Any]) -> None:
@@ -322,7 +387,8 @@ def validate_store_attrs(attrs: dict[str, Any]) -> None:
 class ContextStore:
     """A store loaded into memory: `frames[name]` (N, ...), `objects[name]` (M, ...),
     `failures[name]` (F,), root `attrs`, and the names behind the split, scene and source codes
-    (`source_names[stage]`: frames/<stage>_source's, for the stages of SOURCE_STAGES the store has)."""
+    (`source_names[stage]`: frames/<stage>_source's, for the stages of SOURCE_STAGES the store has);
+    `verified`: every file matched the integrity record when it was opened."""
 
     path: str
     attrs: dict[str, Any]
@@ -332,6 +398,7 @@ class ContextStore:
     split_names: list[str] = field(default_factory=list)
     scene_names: list[str] = field(default_factory=list)
     source_names: dict[str, list[str]] = field(default_factory=dict)
+    verified: bool = False  # checked against its integrity record when opened
 
     def __len__(self) -> int:
         return len(self.frames["id"])
@@ -370,11 +437,22 @@ class ContextStore:
         return xyz, area, np.cumsum(new_count) - new_count, new_count
 
 
-def open_store(path: str | Path, verify: bool = False) -> ContextStore:
+def _version(version: Any) -> tuple[int, ...]:
+    """(major, minor) of a schema version; SCHEMA_VERSION's when it cannot be parsed."""
+    try:
+        return tuple(int(x) for x in str(version).split("."))
+    except ValueError:
+        return tuple(int(x) for x in SCHEMA_VERSION.split("."))
+
+
+def open_store(path: str | Path, verify: bool = True) -> ContextStore:
     """Load a store into memory as numpy arrays. Raises StoreError if it is missing, unfinished,
-    of another major schema version, or damaged: with `verify`, any file that differs from the
-    integrity record (`verify_store`, naming the array and the chunk); without, a file that cannot
-    be read (its array, and its chunk when the record can tell)."""
+    of another major schema version, or damaged: any file that differs from the integrity record
+    (`verify_store`, naming the array and the chunk, and the command that rebuilds it). A store of
+    schema < 1.3 has no record: it is read with a warning. `verify=False` skips the check (only a
+    file that cannot be read is then refused, naming its array, and its chunk when the record can
+    tell); a process that opens one local store several times checks it once while its files stay
+    unchanged."""
     path = str(path)
     root, attrs = _open_root(path)
     version = attrs.get("schema_version")
@@ -385,8 +463,13 @@ def open_store(path: str | Path, verify: bool = False) -> ContextStore:
         raise StoreError(f"{path} has store schema {version}; this ga3ce-prep reads {SCHEMA_VERSION}. "
                          "Rebuild the store with this version (`ga3ce-prep run`) or install the "
                          "ga3ce-prep release that wrote it")
-    if verify:
-        verify_store(path)
+    verified = False
+    if verify and "integrity" not in attrs and _version(version) < RECORD_SINCE:
+        log.warning("%s (schema %s) has no integrity record, which came with schema 1.3: it is read unchecked; "
+                    "rebuild it with this ga3ce-prep (`ga3ce-prep run`) to give it one", path, version)
+    elif verify:
+        _verify_once(path)
+        verified = True
     groups: dict[str, dict[str, np.ndarray]] = {g: {} for g in GROUPS}
     key = ""
     try:
@@ -409,7 +492,7 @@ def open_store(path: str | Path, verify: bool = False) -> ContextStore:
         raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
                         failures=groups["failures"], split_names=split_names, scene_names=scene_names,
-                        source_names=source_names)
+                        source_names=source_names, verified=verified)
 
 
 def _unreadable(path: str, key: str, error: Exception) -> StoreError:
@@ -419,4 +502,8 @@ def _unreadable(path: str, key: str, error: Exception) -> StoreError:
         problems = store_problems(path)
     except StoreError:
         problems = []
-    return _damaged(path, problems or [f"{key} cannot be read ({type(error).__name__}: {error})"])
+    try:
+        attrs = _open_root(path)[1]
+    except StoreError:
+        attrs = None
+    return _damaged(path, problems or [f"{key} cannot be read ({type(error).__name__}: {error})"], attrs)

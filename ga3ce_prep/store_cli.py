@@ -19,8 +19,8 @@ def _bar(n: int, peak: int, width: int = 30) -> str:
     return "#" * (int(round(width * n / peak)) if peak else 0)
 
 
-def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = False) -> str:
-    """`ga3ce-prep info`'s text for an opened store (verified: it was opened with verify=True)."""
+def describe_store(s: ContextStore, max_failures: int = 8) -> str:
+    """`ga3ce-prep info`'s text for an opened store (its integrity line says whether it was verified)."""
     fr, a = s.frames, s.attrs
     n = len(s)
     lines = [f"store        {s.path}",
@@ -77,9 +77,9 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
             lines.append(f"  ... {nf - max_failures} more (read them with open_store(path).failures)")
     files = (a.get("integrity") or {}).get("files") or {}
     size = sum(f[0] for f in files.values()) / 1e6
-    lines.append(f"integrity    {len(files)} files ({size:.1f} MB): every one matches its SHA-256" if verified else
-                 f"integrity    {len(files)} files ({size:.1f} MB) recorded; check them with --verify" if files else
-                 "integrity    no record (a store of schema < 1.3)")
+    lines.append("integrity    no record (a store of schema < 1.3)" if not files else
+                 f"integrity    {len(files)} files ({size:.1f} MB): every one matches its SHA-256" if s.verified else
+                 f"integrity    {len(files)} files ({size:.1f} MB) recorded; not checked (--no-verify)")
     return "\n".join(lines)
 
 
@@ -89,13 +89,15 @@ def describe_store(s: ContextStore, max_failures: int = 8, verified: bool = Fals
               help="How many failure messages to list.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the root attributes (provenance, summary) as JSON instead.")
-@click.option("--verify", is_flag=True,
+@click.option("--verify/--no-verify", default=True, show_default=True,
               help="First check every file against the store's integrity record (SHA-256); a damaged store is an "
-                   "error naming each damaged array and chunk.")
+                   "error naming each damaged array and chunk. --no-verify reads it unchecked.")
 def info(store, max_failures, as_json, verify):
-    """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures."""
+    """Print what a store holds: splits, scenes, frames, object-count histogram, provenance, failures.
+
+    The store is first checked against its integrity record (--no-verify skips that)."""
     s = open_store(store, verify=verify)
-    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures, verified=verify))
+    click.echo(json.dumps(s.attrs, indent=2) if as_json else describe_store(s, max_failures))
 
 
 @click.command("show")
@@ -107,7 +109,7 @@ def info(store, max_failures, as_json, verify):
 @click.option("--data", type=click.Path(file_okay=False), default=None,
               help="Dataset root, if it moved since the store was made (for the image and depth).")
 def show(store, frame_id, out, data):
-    """Draw one frame's 3D context as a PNG, or write it as a PLY point set."""
+    """Draw one frame's 3D context as a PNG, or write it as a PLY point set (the store is verified first)."""
     from .viz import show as show_frame
 
     path = show_frame(open_store(store), frame_id, out, data)
@@ -120,7 +122,8 @@ def show(store, frame_id, out, data):
 @click.option("--format", "fmt", type=click.Choice(["hdf5"]), default="hdf5", show_default=True,
               help="Output format (HDF5: the store's groups and arrays, names unchanged).")
 def export(store, out, fmt):
-    """Export a store's arrays to HDF5 for other trainers (same names, shapes and dtypes)."""
+    """Export a store's arrays to HDF5 for other trainers (same names, shapes and dtypes; the store is verified
+    first)."""
     from .store_hdf5 import export_hdf5
 
     path = export_hdf5(store, out)

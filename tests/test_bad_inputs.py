@@ -448,3 +448,85 @@ def test_the_installed_entry_point_prints_one_line_and_exits_2(synth_gafa_world,
     env = {k: v for k, v in os.environ.items() if k != "GA3CE_DEBUG"}
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     refused((p.returncode, p.stdout, p.stderr), tmp_path / "s.zarr", f"{pkl}: holds a str, not a dict")
+
+
+# ---------------------------------------------------------------- a damaged store, whoever reads it
+
+def test_every_reader_refuses_a_damaged_store_whatever_force_says(synth_world, tmp_path, ga3ce):
+    from ga3ce_prep.errors import StoreError
+    from ga3ce_prep.model import ModelConfig
+    from ga3ce_prep.train import TrainConfig, train
+    from ga3ce_prep.train.dataset import ContextDataset
+
+    store = tmp_path / "s.zarr"
+    run_pipeline("synthetic", synth_world, store, overrides=RUN, progress=False)
+    model = ModelConfig(num_encoder_layers=1, num_decoder_layers=1, dim_feedforward=64, head_hidden=64)
+    run = train(TrainConfig(store=str(store), out=str(tmp_path / "run"), epochs=1, batch_size=8, warmup_epochs=0,
+                            progress=False, model=model))
+    fid = open_store(store).frames["id"][0]
+    (store / "frames" / "head_pos" / "c" / "0" / "0").unlink()           # one chunk deleted
+    damaged = f"error: {store} is damaged: array frames/head_pos, chunk (0, 0) (rows 0-11): missing"
+    rebuild = ("rerunning the `ga3ce-prep run` command that wrote it (its work directory's cache makes that quick): "
+               "`ga3ce-prep run --pipeline ")
+    ckpt = run / "best.pt"
+    for args in (["eval", "--store", store, "--checkpoint", ckpt, "--cdf", "none"],
+                 ["eval", "--store", store, "--checkpoint", ckpt, "--cdf", "none", "--force"],
+                 ["train", "--store", store, "--out", tmp_path / "run2", "--epochs", "1"],
+                 ["train", "--store", store, "--out", tmp_path / "run3", "--epochs", "1", "--n-max", "auto"],
+                 ["ablate", "--store", store, "--out", tmp_path / "ablate", "--rows", "full", "--epochs", "1"],
+                 ["report", run, "--out", tmp_path / "report"],
+                 ["report", run, "--out", tmp_path / "report", "--force"],
+                 ["info", store], ["show", store, fid, "--out", tmp_path / "f.png"],
+                 ["export", store, tmp_path / "s.h5"]):
+        line = refused(ga3ce(*args), None, damaged, rebuild, f"--out {store}`, with the --set options it had")
+        assert line.startswith(damaged), (args, line)
+    with pytest.raises(StoreError, match=r"array frames/head_pos, chunk \(0, 0\)"):
+        ContextDataset(store, "train")
+    assert not list(tmp_path.rglob("eval_*")) and not list(tmp_path.rglob("config.json"))[1:]
+    assert not (tmp_path / "f.png").exists() and not (tmp_path / "s.h5").exists()
+    assert not (tmp_path / "report" / "index.html").exists()
+    env = {k: v for k, v in os.environ.items() if k != "GA3CE_DEBUG"}
+    p = subprocess.run([str(Path(sys.executable).parent / "ga3ce-prep"), "eval", "--store", str(store), "--checkpoint",
+                        str(ckpt), "--cdf", "none", "--force"], capture_output=True, text=True, timeout=300, env=env)
+    refused((p.returncode, p.stdout, p.stderr), None, damaged, rebuild)
+
+
+# ---------------------------------------------------------------- the weak three
+
+def test_a_header_only_annotation_beside_images_is_said(synth_world, tmp_path, ga3ce, caplog):
+    data = _copy(synth_world, tmp_path)
+    ann = data / "train_annotation.txt"
+    ann.write_text(ann.read_text().splitlines()[0] + "\n")               # GFIE's file, its rows gone
+    n = len(list((data / "rgb" / "train").rglob("*.jpg")))
+    code, _, err = _run(ga3ce, data, tmp_path / "s.zarr")
+    assert code == 0, err
+    assert (f"gfie: {ann} has a header and no rows, but {data / 'rgb' / 'train'} holds {n} images: the train split "
+            "is empty; write its rows, or leave it out with dataset.options.splits") in caplog.text
+    assert n and not len(open_store(tmp_path / "s.zarr").indices("train"))
+    caplog.clear()
+    shutil.rmtree(data / "rgb" / "train")                                 # no images: an empty split, said nothing
+    code, _, err = _run(ga3ce, data, tmp_path / "t.zarr")
+    assert code == 0, err
+    assert "has a header and no rows" not in caplog.text
+
+
+@pytest.mark.parametrize("kind, found", [
+    ("text", "it holds text ('525.0 525.0 80.0 60.0')"),
+    ("pickle", "it holds a Python pickle"),
+    ("objects", "it holds Python objects (dtype object)"),
+])
+def test_intrinsics_that_are_not_a_numeric_npy_are_refused_for_what_they_are(synth_world, tmp_path, ga3ce, kind,
+                                                                             found):
+    data = _copy(synth_world, tmp_path)
+    k = data / "CameraKinect.npy"
+    values = [525.0, 525.0, 80.0, 60.0]
+    if kind == "text":
+        k.write_text(" ".join(map(str, values)) + "\n")
+    elif kind == "pickle":
+        k.write_bytes(pickle.dumps(values))
+    else:
+        np.save(k, np.array([*values[:3], "60"], dtype=object), allow_pickle=True)
+    line = refused(_run(ga3ce, data, tmp_path / "s.zarr"), tmp_path / "s.zarr",
+                   f"cannot read intrinsics {k}: not a numeric .npy array: {found}; pickled objects are never loaded; "
+                   "expected a .npy of 4 floats [fx, fy, cx, cy]")
+    assert "allow_pickle" not in line and "unsafely" not in line

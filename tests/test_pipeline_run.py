@@ -411,6 +411,54 @@ def test_damaged_cache_entries_are_recomputed_in_the_same_rerun(synth_world, ref
     assert sum("is damaged" in r.getMessage() for r in caplog.records) == 5
 
 
+def test_a_crc_consistent_edit_of_a_cache_entry_is_recomputed(synth_world, reference, tmp_path, caplog):
+    from ga3ce_prep.pipeline.cache import DIGEST, content_digest
+
+    out, work = tmp_path / "s.zarr", tmp_path / "work"
+    _run(synth_world, out, work_dir=work)
+    entry = sorted((work / "cache" / "view").glob("*/*.npz"))[1]
+    z = dict(np.load(entry))
+    recorded = str(z.pop(DIGEST))
+    np.savez(entry, **z)                                   # an entry from before the digest: read as before
+    shutil.rmtree(out)
+    summary = _run(synth_world, out, work_dir=work)
+    assert summary.store_written and sum(summary.computed_shards.values()) == 0
+    assert_same_store(out, reference[0])
+    z["view"] = z["view"][::-1].copy()                     # an edit, its CRC-32 recomputed by np.savez
+    np.savez(entry, **z, **{DIGEST: np.array(recorded)})
+    with zipfile.ZipFile(entry) as zf:
+        assert zf.testzip() is None
+    shutil.rmtree(out)
+    summary = _run(synth_world, out, work_dir=work)
+    assert summary.store_written
+    assert {s: summary.computed_shards[s] for s in STAGES} == {
+        "input": 0, "depth": 0, "objects": 0, "head": 0, "pose": 0, "view": 1}
+    assert_same_store(out, reference[0])
+    assert [r.getMessage() for r in caplog.records if "is damaged" in r.getMessage()] == [
+        f"cache entry {entry} is damaged (EntryChanged: its arrays differ from their SHA-256 recorded in "
+        f"{DIGEST} (changed after it was written; its CRC-32 matches)): removed, it is computed again"]
+    again = dict(np.load(entry))                           # computed again, with its own digest
+    np.testing.assert_array_equal(again["view"], z["view"][::-1])
+    assert str(again.pop(DIGEST)) == content_digest(again)
+
+
+def test_cache_entries_carry_their_digest_apart_from_their_arrays(tmp_path):
+    from ga3ce_prep.pipeline.cache import DIGEST, Cache, content_digest
+
+    cache = Cache(tmp_path / "cache")
+    arrays = {"ids": np.array(["a", "b"]), "ok": np.array([True, False]), "fail_idx": np.array([1]),
+              "fail_error": np.array(["FrameError"]), "fail_message": np.array(["no depth"]),
+              "view": np.ones((2, 3), np.float32), "seconds": np.float64(0.5)}
+    path = cache.save("view", "ab" * 32, arrays)
+    assert str(np.load(path)[DIGEST]) == content_digest(arrays)
+    got = cache.load("view", "ab" * 32)
+    assert sorted(got) == sorted(arrays)
+    for k in arrays:
+        np.testing.assert_array_equal(got[k], arrays[k])
+    with pytest.raises(ValueError, match=DIGEST):
+        cache.save("view", "cd" * 32, {**arrays, DIGEST: np.array("x")})
+
+
 def test_a_rerun_repairs_a_damaged_store(synth_world, reference, tmp_path):
     out = tmp_path / "s.zarr"
     _run(synth_world, out)

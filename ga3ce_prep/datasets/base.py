@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, DatasetFormatError, FrameError
-from ..frames import FrameRef, box_fault, depth_type_fault, image_header_size, read_depth
+from ..frames import FrameRef, box_fault, depth_type_fault, image_header_size, load_npy, read_depth
 from ..units import DISTANCE_RANGE_M, LENGTH_UNITS, METRES_PER_UNIT, check_plausible, infer_units, units_name
 
 log = logging.getLogger("ga3ce_prep.datasets")
@@ -179,12 +179,15 @@ def check_intrinsics(K: np.ndarray, path: Path) -> np.ndarray:
 def intrinsics_from_fxfycxcy(path: Path) -> np.ndarray:
     """K (3, 3) float64 from a .npy holding [fx, fy, cx, cy] (GFIE's and CAD-120's CameraKinect.npy),
     checked (`check_intrinsics`)."""
+    expected = "expected a .npy of 4 floats [fx, fy, cx, cy] (np.save(path, np.array([fx, fy, cx, cy])))"
     try:
-        a = np.load(path, allow_pickle=False)
-        a = np.asarray(a, np.float64).ravel()
-    except (OSError, ValueError, TypeError, EOFError) as e:
-        raise DatasetFormatError(f"cannot read intrinsics {path}: {e}; expected a .npy of 4 floats "
-                                 "[fx, fy, cx, cy]") from e
+        a = load_npy(path)
+    except (OSError, ValueError, EOFError) as e:
+        raise DatasetFormatError(f"cannot read intrinsics {path}: {e}; {expected}") from None
+    if a.dtype.kind not in "biuf":
+        raise DatasetFormatError(f"cannot read intrinsics {path}: not a numeric .npy array: it holds {a.dtype} "
+                                 f"values; {expected}")
+    a = np.asarray(a, np.float64).ravel()
     if a.shape != (4,):
         raise DatasetFormatError(f"{path}: expected 4 values [fx, fy, cx, cy], found shape {a.shape}")
     fx, fy, cx, cy = a

@@ -9,6 +9,7 @@ points coincide or are missing.
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -32,6 +33,9 @@ from .base import (
     read_csv_columns,
 )
 
+log = logging.getLogger("ga3ce_prep.datasets")
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 SPLIT_FOLDERS: dict[str, str] = {"train": "train", "valid": "val", "test": "test"}  # folder -> split
 # Columns the adapter reads (by name; other columns are ignored). Boxes and 2D points in pixels.
 COLUMNS: tuple[str, ...] = (
@@ -73,6 +77,9 @@ class GFIEAdapter(DatasetAdapter):
                                      f"Expected layout:\n{LAYOUT}")
         self._tables = {s: read_csv_columns(p, COLUMNS) for s, p in self.annotations.items()}
         check_rows(list(self._tables.values()))
+        for folder, t in self._tables.items():
+            if not len(t):
+                self._warn_empty_split(folder, t.path)
         self._values = {s: {c: t.floats(c) for c in COLUMNS} for s, t in self._tables.items()}
         for folder, t in self._tables.items():
             f = self._values[folder]
@@ -90,6 +97,16 @@ class GFIEAdapter(DatasetAdapter):
                      if np.isfinite(eye_z).any() else "m" if units == "auto" else units)
         self.units = {"depth": depth_units, "eye_gaze_xyz": xyz_units, "boxes": BOXES_XYXY,
                       "decided_by": "the data (units: auto)" if units == "auto" else f"units: {units}"}
+
+    def _warn_empty_split(self, folder: str, annotation: Path) -> None:
+        """Warn when a split's annotation file has a header and no rows while rgb/<folder>/ holds
+        images: the split is empty, which is rarely what the images mean."""
+        images = self.root / "rgb" / folder
+        n = sum(1 for p in images.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES) if images.is_dir() else 0
+        if n:
+            log.warning("gfie: %s has a header and no rows, but %s holds %d images: the %s split is empty; write "
+                        "its rows, or leave it out with dataset.options.splits", annotation, images, n,
+                        SPLIT_FOLDERS[folder])
 
     def _depth_path(self, folder: str, scene_id: float, frame: float) -> Path:
         return self.root / "depth" / folder / f"scene{int(scene_id)}" / f"{int(frame):04d}.npy"

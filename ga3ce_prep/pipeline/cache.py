@@ -12,6 +12,10 @@ where there is no rename, an entry is one PUT of its whole bytes (a multipart up
 the store shows the object only once it is complete, so the same holds without temporaries. An
 entry that cannot be read back whole (a torn or truncated file, a flipped bit: each member's CRC-32
 is checked) is removed with a warning and so computed again, in the same run (graph.py, run.py).
+CRC-32 catches accidents, not edits (a tool that rewrites the archive recomputes it), so each entry
+also records the SHA-256 of its arrays (`content_digest`, the member `content_sha256`), checked when
+it is read: an entry whose arrays no longer match is removed and computed again the same way. An
+entry without the member (written before it existed) is read as before, on its CRC-32 alone.
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ log = logging.getLogger("ga3ce_prep.pipeline")
 # The arrays an entry must hold (pipeline/tasks.py writes them): one without them is damaged, and
 # read as missing (then recomputed), like an unreadable one.
 ENTRY_ARRAYS: tuple[str, ...] = ("ids", "ok", "fail_idx", "fail_error", "fail_message")
+DIGEST = "content_sha256"  # the member holding the SHA-256 of the entry's other arrays (`content_digest`)
 STAGE_ARRAYS: dict[str, tuple[str, ...]] = {
     "depth": ("valid_frac", "filled_frac"), "objects": ("count", "n_dropped", "xyz", "area", "score"),
     "head": ("head_pos",), "pose": ("pose",), "view": ("view",)}
@@ -89,6 +94,26 @@ def file_sha256(path: str | Path) -> str:
     return _sha_cache[key]
 
 
+def content_digest(arrays: dict[str, Any]) -> str:
+    """SHA-256 hex of an entry's arrays as they read back: by name (sorted), each array's dtype,
+    shape and bytes; the DIGEST member itself left out."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name == DIGEST:
+            continue
+        a = np.asarray(arrays[name])
+        h.update(json.dumps([name, a.dtype.str, list(a.shape)]).encode())
+        if a.dtype.kind == "O":  # not in an entry (it could not be read back without pickle): hashed all the same
+            h.update(repr(a.tolist()).encode())
+        else:  # the bytes, without a copy
+            h.update(np.ascontiguousarray(a).reshape(-1).view(np.uint8))
+    return h.hexdigest()
+
+
+class EntryChanged(ValueError):
+    """A cache entry whose arrays differ from its recorded content digest."""
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -135,8 +160,9 @@ class Cache:
         return {(parts[-3], parts[-1][:-len(".npz")]) for parts in (n.rsplit("/", 3) for n in names)}
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
-        """The entry's arrays, or None if it is missing, damaged (a bad CRC-32, unreadable) or lacks
-        its arrays (then it is removed)."""
+        """The entry's arrays (without its DIGEST), or None if it is missing, damaged (a bad CRC-32,
+        unreadable), lacks its arrays or no longer matches its content digest (then it is removed,
+        with a warning)."""
         p = self.path(stage, key)
         source: io.BytesIO | Path = p
         if self.remote:
@@ -155,6 +181,10 @@ class Cache:
             missing = [k for k in (*ENTRY_ARRAYS, *STAGE_ARRAYS.get(stage, ())) if k not in entry]
             if missing:
                 raise KeyError(f"lacks {missing}")
+            recorded = entry.pop(DIGEST, None)
+            if recorded is not None and str(recorded) != content_digest(entry):
+                raise EntryChanged(f"its arrays differ from their SHA-256 recorded in {DIGEST} (changed after it "
+                                   "was written; its CRC-32 matches)")
             return entry
         except FileNotFoundError:
             return None
@@ -164,8 +194,11 @@ class Cache:
             return None
 
     def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Location:
-        """Write an entry atomically: locally a temp file, fsync, rename, fsync the directory;
-        remote one PUT of the whole entry."""
+        """Write an entry atomically, with the SHA-256 of its arrays (DIGEST): locally a temp file,
+        fsync, rename, fsync the directory; remote one PUT of the whole entry."""
+        if DIGEST in arrays:
+            raise ValueError(f"a cache entry's array may not be named {DIGEST!r}")
+        arrays = {**arrays, DIGEST: np.array(content_digest(arrays))}
         p = self.path(stage, key)
         if self.remote:
             buf = io.BytesIO()

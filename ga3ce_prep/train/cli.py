@@ -61,9 +61,10 @@ def _model_sets(items: tuple[str, ...]) -> dict[str, Any]:
 
 
 def _checked_split(store: str, split: str) -> ContextStore:
-    """The store, once `--split` is known to it and has frames to evaluate (a view prior and
-    ground-truth gaze); ConfigError naming the store, the split and the splits it has otherwise."""
-    st = open_store(store)
+    """The store, verified against its integrity record (StoreError naming the damaged array and
+    chunk: whatever --force says), once `--split` is known to it and has frames to evaluate (a view
+    prior and ground-truth gaze); ConfigError naming the store, the split and the splits it has otherwise."""
+    st = open_store(store, verify=True)
     there = f"its splits: {', '.join(st.split_names) or 'none'}"
     if split not in st.split_names:
         raise ConfigError(f"--split {split}: store {st.path} has no split {split!r}; {there}")
@@ -200,7 +201,8 @@ def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, for
               help="The dataset's root, when it is no longer where the store's provenance says (the split's rows, "
               "and with --gfm the images and depth, are read from it).")
 @click.option("--force", is_flag=True,
-              help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset).")
+              help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset). "
+              "That is all it does: a damaged store is refused even so.")
 @click.option("--gfm", "gfm", default=None, metavar="CHECKPOINT",
               help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns "
               "(AUC, L2, 3D distance, 3D angle) for GFIE, Ours and Ours + GFM, from the frames' images and depth "
@@ -279,7 +281,8 @@ def ablate(store, out, rows, seeds, split, model_name, force, model_set, **recip
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True,
               help="Where to run the model.")
 @click.option("--threads", default=2, show_default=True, help="torch CPU threads.")
-@click.option("--force", is_flag=True, help="Report on a store other than the one the checkpoint was trained on.")
+@click.option("--force", is_flag=True, help="Report on a store other than the one the checkpoint was trained on "
+              "(a damaged store is refused even so).")
 def report(run_dir, store, split, out, frames, data, device, threads, force):
     """One HTML page of a trained run: evaluation, curves, error CDF, per-scene and ablation bars, figures.
 

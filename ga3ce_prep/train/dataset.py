@@ -81,7 +81,8 @@ def store_fingerprint(store: ContextStore) -> str:
 class ContextDataset(Dataset):
     """Per-frame GA3CE inputs of one or more splits of a store (see the module docstring).
 
-    store: a path or an already opened ContextStore (open it once and build one dataset per split).
+    store: a path (opened and verified against its integrity record: `open_store`) or an already
+    opened ContextStore (open it once and build one dataset per split).
     split: "train" | "val" | "test", a sequence of them, or None for every frame.
     require_gaze: leave out frames whose ground-truth gaze is unknown.
     max_frames: keep only this many frames (an evenly spaced subset, for short runs).

@@ -263,11 +263,11 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
     if last_path.exists() and not resume and not force:
         raise CheckpointError(f"{out} already holds a run (last.pt): pass --resume to continue it, "
                               "--force to overwrite it, or choose another --out")
+    # the data (a damaged store is refused before the run folder exists), and the configuration as
+    # the run folder records it
+    store = open_store(config.store, verify=True)
     if ranks.main:
         out.mkdir(parents=True, exist_ok=True)
-
-    # the data, and the configuration as the run folder records it
-    store = open_store(config.store, verify=True)
     fingerprint = store_fingerprint(store)
     train_ds, val_ds = _splits(config, store)
     use_noise = config.uses_view_noise(train_ds.profile)
