@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +34,7 @@ import numpy as np
 
 from ga3ce_prep.model import GA3CE, ModelConfig
 from ga3ce_prep.train import TrainConfig, evaluate, train
-from ga3ce_prep.train.ablate import run_done
+from ga3ce_prep.train.trainer import reuse_g0, run_done
 
 from cpu_lock import CLI, cpu_lock, run_locked
 
@@ -171,9 +170,7 @@ def main(out: str, phase: str, worlds: str | None, pipeline: str, epochs: int, o
             click.echo(f"{name}: {key} ({folder}), seeds {list(SEEDS)}")
             if GA3CE(model).g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
                 for k in SEEDS:
-                    bare, g0 = runs / "no-objects" / f"seed{k}", runs / folder / f"seed{k}" / "g0"
-                    if run_done(bare, epochs) and not g0.exists():
-                        shutil.copytree(bare, g0)
+                    reuse_g0(runs / folder / f"seed{k}", runs / "no-objects" / f"seed{k}", epochs)
             got = [run_model(store, runs / folder / f"seed{k}", model, k, split, epochs, world.train_frames)
                    for k in SEEDS]
             maes[key], prior = [m for m, _ in got], got[0][1]

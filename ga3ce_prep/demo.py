@@ -67,7 +67,7 @@ def demo(out: str, scenes: int, frames_per_scene: int, epochs: int, seed: int, w
     click.echo(summary.format())
     _done(t0)
 
-    rows = ("full", "ours", "no-objects")
+    rows = ("full", "no-objects", "ours")   # ours starts from the no-objects model
     t0 = _step(3, f"training the paper's GA3CE, ours and the model without objects ({epochs} epochs each, the "
                   f"default recipe: docs/training.md) -> {run}/{{{','.join(rows)}}}/seed{seed}")
     if all((run / row / f"seed{seed}" / "best.pt").is_file() for row in rows):

@@ -66,4 +66,8 @@ def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path, method
             # is 1, so the query and key rows get float-noise gradients only, which AdamW turns into
             # arbitrary steps; they do not change any output (the histories above agree). Values only.
             a_, b_ = a_[2 * d:], b_[2 * d:]
+        if k == "pointer.k.bias":
+            # q . b_k adds the same to every logit of a frame: the softmax ignores it, its gradient
+            # is float noise, and AdamW's steps on noise are arbitrary (no output depends on it)
+            continue
         torch.testing.assert_close(b_, a_, rtol=1e-4, atol=atol, msg=k)

@@ -4,8 +4,10 @@
   token against the objects (encoder over [null token, objects], decoder over the subject token,
   the gaze-cone bias in cross-attention) and regresses g' (ModelConfig.output "regress").
 - `ours`: our design, whatever it is at the time (its full config is saved in each checkpoint).
-  Today: GA3CE's egocentric transform and encodings with a pointer output: a first pass without
-  objects gives g0, then g is g0 or an object's direction near it (output "pointer";
+  Today: GA3CE's egocentric transform and encodings with a pointer output: g0 is the model
+  without objects, trained first and frozen (pointer_g0 "frozen"), then g is g0 or an object's
+  direction near it (output "pointer"; chosen over training g0 jointly on the validation splits
+  of three worlds: benchmarks/objects_value.py --phase choose;
   docs/training.md, "The output").
 
 A method is a set of ModelConfig values (`ModelConfig.for_method(name)` builds it); an ablation
@@ -35,8 +37,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "the paper's model: a 3D gaze transformer over the objects regresses the gaze",
            {"output": "regress"}),
     Method("ours", "ours",
-           "GA3CE's encodings; a pass without objects gives g0, then g points at g0 or an object near it",
-           {"output": "pointer"}),
+           "the model without objects gives g0 (trained first, then frozen); a pointer then picks g0 or an "
+           "object near it",
+           {"output": "pointer", "pointer_g0": "frozen"}),
 )}
 DEFAULT_METHOD = "ga3ce"
 NO_OBJECTS_LABEL = "no objects (app. + pose)"

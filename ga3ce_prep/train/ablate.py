@@ -23,12 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from ..model import METHODS, model_label
+from ..model import GA3CE, METHODS, model_label
 from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
 from .profiles import DatasetProfile
-from .trainer import TrainConfig, run_done, train
+from .trainer import TrainConfig, reuse_g0, run_done, train
 
 log = logging.getLogger("ga3ce_prep.train")
 
@@ -96,6 +96,8 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             run = out / name / f"seed{seed}"
             cfg = dataclasses.replace(base, out=str(run), seed=seed,
                                       model=dataclasses.replace(base.model, **ab.overrides))
+            if GA3CE(cfg.model).g0_frozen and not force:   # its g0 stage is the no-objects row, weight for weight
+                reuse_g0(run, out / "no-objects" / f"seed{seed}", cfg.epochs)
             if force or not run_done(run, cfg.epochs):
                 log.info("ablation %s, seed %d: training into %s", name, seed, run)
                 train(cfg, resume=(run / "last.pt").exists() and not force, force=force)

@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -173,6 +174,17 @@ def g0_run(config: TrainConfig, resume: bool = False, force: bool = False) -> Pa
         log.info("training g0, the model without objects, into %s", run)
         train(g0, resume=(run / "last.pt").exists() and not overwrite, force=force)
     return run / "best.pt"
+
+
+def reuse_g0(run: Path, twin: Path, epochs: int) -> bool:
+    """Give a frozen-g0 run its g0 stage from `twin`, a finished run of its no-objects twin (same
+    store, recipe and seed: the same weights, tests/test_train.py), when it has none yet; whether
+    it did."""
+    g0 = Path(run) / "g0"
+    if g0.exists() or not run_done(Path(twin), epochs):
+        return False
+    shutil.copytree(twin, g0)
+    return True
 
 
 def _splits(config: TrainConfig, store: ContextStore) -> tuple[ContextDataset, ContextDataset | None]:
