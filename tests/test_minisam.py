@@ -11,6 +11,7 @@ from onnx import numpy_helper
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.estimators.fast_decoder import FastDecoder
+from ga3ce_prep.estimators.amg import transform_coords
 from ga3ce_prep.estimators.mobilesam import (
     ImageEncoder,
     MobileSamSegmenter,
@@ -18,7 +19,6 @@ from ga3ce_prep.estimators.mobilesam import (
     SegmenterOptions,
     exported_token,
     single_point_prompts,
-    transform_coords,
 )
 from ga3ce_prep.registry_models import model_path
 from ga3ce_prep.stages import backend_class

@@ -9,6 +9,7 @@ import onnx
 import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
+from ga3ce_prep.estimators.amg import transform_coords
 from ga3ce_prep.estimators.mobilesam import (
     ImageEncoder,
     MobileSamSegmenter,
@@ -17,7 +18,6 @@ from ga3ce_prep.estimators.mobilesam import (
     mask_mode,
     normalise_and_pad,
     resize_longest_side,
-    transform_coords,
 )
 from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
