@@ -2,11 +2,17 @@
 that imports it back. Read with `ast`, not by importing: every intra-package import counts, at module
 level and inside functions alike (a function-level import is a cycle that waits for its first
 call), and importing a submodule counts as importing its packages too (Python runs their
-__init__.py first). Only `if TYPE_CHECKING:` blocks are left out: they never run."""
+__init__.py first). Only `if TYPE_CHECKING:` blocks are left out: they never run.
+
+estimators/ holds its families only (segment, pose, view, depth, runtime; estimators/__init__.py),
+and a family imports no other family but runtime/, the layer they share."""
 import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "ga3ce_prep"
+ESTIMATORS = "ga3ce_prep.estimators"
+FAMILIES = {"segment", "pose", "view", "depth", "runtime"}
+SHARED = "runtime"
 
 
 def modules() -> dict[str, Path]:
@@ -93,6 +99,19 @@ def test_package_has_no_import_cycle():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
+def test_estimators_holds_its_families_only():
+    entries = {p.name for p in (PACKAGE / "estimators").iterdir() if p.name != "__pycache__"}
+    assert entries == {"__init__.py", "cli.py", *FAMILIES}
+    assert all((PACKAGE / "estimators" / f / "__init__.py").is_file() for f in FAMILIES)
+
+
+def test_a_family_imports_only_itself_and_runtime():
+    crossing = [f"{m} -> {t}" for m, targets in import_graph().items() if m.startswith(ESTIMATORS + ".")
+                for t in targets if t.startswith(ESTIMATORS + ".")
+                and t.split(".")[2] not in {m.split(".")[2], SHARED} and m.split(".")[2] in FAMILIES]
+    assert not crossing
+
+
 def test_graph_reads_function_level_imports_and_packages():
     graph = import_graph()
     # stages/view.py imports its estimators inside methods only
@@ -100,7 +119,7 @@ def test_graph_reads_function_level_imports_and_packages():
     # importing ga3ce_prep.synthetic.truth runs ga3ce_prep/synthetic/__init__.py first
     assert {"ga3ce_prep.synthetic.truth", "ga3ce_prep.synthetic"} <= graph["ga3ce_prep.stages.truth"]
     # `from . import amg` names the submodule; a package's __init__ imports its submodules
-    assert "ga3ce_prep.estimators.amg" in graph["ga3ce_prep.estimators.mobilesam"]
+    assert "ga3ce_prep.estimators.segment.amg" in graph["ga3ce_prep.estimators.segment.mobilesam"]
     assert "ga3ce_prep.pipeline.run" in graph["ga3ce_prep.pipeline"]
 
 

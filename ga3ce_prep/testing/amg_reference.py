@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..estimators import amg
-from ..estimators.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, single_point_prompts
+from ..estimators.segment import amg
+from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, single_point_prompts
 
 
 @dataclass

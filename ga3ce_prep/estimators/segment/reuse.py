@@ -40,8 +40,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
-from ..params import param
+from ...errors import ConfigError
+from ...params import param
 from . import amg
 
 CELL = 16   # pixels of the 1024 input per embedding cell

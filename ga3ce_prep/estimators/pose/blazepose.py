@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FrameError
-from ..geometry import look_at_rotation, pixel_ray
-from ..params import param
-from .crops import (
+from ...errors import FrameError
+from ...geometry import look_at_rotation, pixel_ray
+from ...params import param
+from ..runtime.crops import (
     SquareRoi,
     apply_affine,
     continuous_to_index,
@@ -45,9 +45,9 @@ from .crops import (
     roi_affine,
     rotation_2d,
 )
-from .litert import LiteModel, LiteParams, LiteTensor
+from ..runtime.litert import LiteModel, LiteParams, LiteTensor
+from ..runtime.ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 from .placement import refine_with_depth, solve_translation
-from .ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 
 LANDMARK_NAMES: tuple[str, ...] = (
     "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",

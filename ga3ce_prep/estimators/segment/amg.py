@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass, fields
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
-from ..params import param
+from ...errors import ConfigError
+from ...params import param
 
 
 @dataclass(frozen=True, kw_only=True)

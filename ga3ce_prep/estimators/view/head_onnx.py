@@ -1,5 +1,5 @@
 """Any head-crop gaze network exported to ONNX (`view/onnx`): the head crop of `CropParams`
-(GFIE's recipe by default, estimators/head_crop.py), one forward pass, and its 3-vector output
+(GFIE's recipe by default, estimators/view/head_crop.py), one forward pass, and its 3-vector output
 mapped to our camera frame (x right, y down, z forward) by `axes` and normalised.
 
 Contract: one float32 input of shape (1, 3, S, S) ("nchw") or (1, S, S, 3) ("nhwc"), S =
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from ..params import param
+from ...errors import ConfigError, FrameError, ModelFileError
+from ...params import param
+from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 from .head_crop import CropParams, head_input
-from .onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 
 AXES = ("x", "-x", "y", "-y", "z", "-z")
 

@@ -35,10 +35,8 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from . import amg
-from .amg_reuse import ReuseStep, SequenceReuse
-from .onnx_runtime import (
+from ...errors import ConfigError, FrameError, ModelFileError
+from ..runtime.onnx_runtime import (
     RuntimeParams,
     TensorSpec,
     check_contract,
@@ -47,6 +45,8 @@ from .onnx_runtime import (
     input_dims,
     resolve_providers,
 )
+from . import amg
+from .reuse import ReuseStep, SequenceReuse
 
 IMG_SIZE = 1024
 PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)   # RGB, 0-255
@@ -256,7 +256,7 @@ class Segmentation:
     n_candidates: the masks decoded (they passed the IoU filter).
     n_mask_prompts: the prompts whose masks were decoded.
     n_prompts: the prompts decoded (the whole grid, fewer on a reuse frame).
-    reuse: what reuse did on this frame (amg_reuse.ReuseStep), None without reuse."""
+    reuse: what reuse did on this frame (reuse.ReuseStep), None without reuse."""
 
     masks: np.ndarray
     scores: np.ndarray
@@ -454,7 +454,7 @@ class MobileSamSegmenter:
         """Segment everything in an (H, W, 3) uint8 RGB image. out_size = (h, w) of the returned masks
         (e.g. the depth map's; default the image's). Filters run at the image resolution, as the
         reference's; the returned masks are the kept candidates' logits resampled to out_size.
-        reuse: the camera sequence's state (amg_reuse.SequenceReuse, `start`ed with this frame's
+        reuse: the camera sequence's state (reuse.SequenceReuse, `start`ed with this frame's
         cues): decode only the prompts whose neighbourhood changed since its key frame (full-image
         crop only). Thread-safe (calls are serialised)."""
         if reuse is not None and self.options.crop_n_layers:

@@ -35,10 +35,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..datasets.gafa import WINDOW, _expand, _square
-from ..frames import load_rgb
-from ..skeleton import BODY25_HEAD
-from .onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
+from ...datasets.gafa import WINDOW, _expand, _square
+from ...frames import load_rgb
+from ...skeleton import BODY25_HEAD
+from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 
 CROP_H, CROP_W = 256, 192  # GAFA's body crop, pixels
 BLUR_WIDTH = 720           # GAFA's pre-blur: frames are resized to this width and back before cropping

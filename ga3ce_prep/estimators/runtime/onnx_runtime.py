@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import ConfigError, ModelFileError
-from ..params import param
+from ...errors import ConfigError, ModelFileError
+from ...params import param
 
 if TYPE_CHECKING:  # onnxruntime is imported where a session is made: loading the params stays light
     import onnxruntime as ort
