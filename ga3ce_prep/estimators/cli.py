@@ -80,7 +80,7 @@ def export_mobilesam(checkpoint: Path, out_dir: Path, opset: int, check: bool) -
     enc, dec = export_onnx(checkpoint, out_dir, opset)
     click.echo(f"wrote {enc}\nwrote {dec}")
     if check:
-        from .runtime.onnx_runtime import file_sha256
+        from ..files import file_sha256
         from .segment.mobilesam import MobileSamSegmenter
 
         err = MobileSamSegmenter(enc, dec, verify=False).verify()
@@ -101,7 +101,7 @@ def export_gfie_view(checkpoint: Path, out: Path, opset: int) -> None:
     \b
       stages: {view: {backend: onnx, params: {model: OUT}}}
     """
-    from .runtime.onnx_runtime import file_sha256
+    from ..files import file_sha256
     from .view.gfie_head import export_onnx
 
     click.echo(f"wrote {export_onnx(checkpoint, out, opset)}\nsha256 {file_sha256(out)}")

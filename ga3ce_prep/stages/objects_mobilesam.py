@@ -98,8 +98,9 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
         (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph),
         and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
-        from ..estimators.runtime.onnx_runtime import file_sha256, resolve_providers
+        from ..estimators.runtime.onnx_runtime import resolve_providers
         from ..estimators.segment.mobilesam import OfficialDecoder, mask_mode
+        from ..files import file_sha256
 
         enc, dec = self.model_files()
         if self.p.decoder_mode == "fast":

@@ -50,7 +50,7 @@ class CropPose(ProcessEstimator, PoseBackend):
 
     def provenance(self) -> dict[str, Any]:
         """The joint list's SHA-256 when it is not a parameter (found beside the model)."""
-        from ..estimators.runtime.onnx_runtime import file_sha256
+        from ..files import file_sha256
 
         if self.p.joints is not None:
             return {}

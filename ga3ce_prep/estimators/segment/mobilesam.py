@@ -36,12 +36,12 @@ import numpy as np
 from PIL import Image
 
 from ...errors import ConfigError, FrameError, ModelFileError
+from ...files import file_sha256
 from ..runtime.onnx_runtime import (
     RuntimeParams,
     TensorSpec,
     check_contract,
     create_session,
-    file_sha256,
     input_dims,
     resolve_providers,
 )
