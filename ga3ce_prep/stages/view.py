@@ -25,7 +25,7 @@ from ..estimators.runtime.onnx_runtime import RuntimeParams
 from ..estimators.view.facemesh import FaceMeshOptions
 from ..estimators.view.head_onnx import HeadOnnxOptions
 from ..frames import FrameRef, Window, load_rgb
-from ..geometry import normalize
+from ..geometry import normalize, unit_direction
 from ..params import param
 from ..skeleton import head_direction_from_pose
 from .base import ProcessEstimator, Sourced, ViewBackend
@@ -52,11 +52,7 @@ class PrecomputedView(ViewBackend):
         self._table()
 
     def view(self, frame: FrameRef) -> np.ndarray:
-        v = self._table().get(frame.id)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-6:
-            raise FrameError(f"view of frame {frame.id} in {self.p.file} is {v.tolist()}, not a direction")
-        return (v / n).astype(np.float32)
+        return unit_direction(self._table().get(frame.id), f"view of frame {frame.id} in {self.p.file}")
 
 
 class OracleView(ViewBackend):
@@ -261,8 +257,5 @@ class GafaView(ProcessEstimator, ViewBackend):
         est = self.estimator()
         crops = np.stack([est.crop(f.image_path, b) for f, b in zip(window.frames, body[1:])])
         gaze = est.predict(normalize_crops(crops), head_masks(head[1:], body[1:]), body_velocity(body))
-        v = np.asarray(gaze[WINDOW // 2], np.float64)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-6:
-            raise FrameError(f"GAFA's network gave {v.tolist()} for frame {frame.id}, not a direction")
-        return (v / n).astype(np.float32)
+        what = f"GAFA's network's output for frame {frame.id}"
+        return unit_direction(np.asarray(gaze[WINDOW // 2], np.float64), what)

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError, FrameError, ModelFileError
+from ...errors import ConfigError, ModelFileError
+from ...geometry import unit_direction
 from ...params import param
 from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 from .head_crop import CropParams, head_input
@@ -65,11 +66,8 @@ class HeadOnnxEstimator:
         """v for the head in box (4,) x1, y1, x2, y2 pixels of an (H, W, 3) uint8 RGB image:
         (3,) float32 unit, camera frame. FrameError for a zero or non-finite output."""
         out = self.session.run([self.output], {self.input: head_input(rgb, box, self.p)})[0]
-        v = self.M @ np.asarray(out, np.float64).reshape(3)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-9:
-            raise FrameError(f"view ONNX {self.path} gave {v.tolist()}, not a direction")
-        return (v / n).astype(np.float32)
+        return unit_direction(self.M @ np.asarray(out, np.float64).reshape(3), f"view ONNX {self.path}'s output",
+                              min_norm=1e-9)
 
 
 __all__ = ["AXES", "HeadOnnxEstimator", "HeadOnnxOptions", "axes_matrix"]
