@@ -172,7 +172,7 @@ class GFIEView(ProcessEstimator, ViewBackend):
     def view(self, frame: FrameRef) -> np.ndarray:
         return self.estimator().estimate(load_rgb(frame.image_path), frame.head_box)
 
-    def view_batch(self, frames: list[FrameRef]) -> list[np.ndarray | Exception]:
+    def batch(self, frames: list[FrameRef]) -> list[np.ndarray | Exception]:
         """v for several frames in one forward pass; a frame whose image cannot be read gets its
         FrameError."""
         from ..estimators.view.head_crop import CropParams, head_input
