@@ -4,7 +4,8 @@ world landmarks with camera-aligned axes.
 
 The steps follow MediaPipe's `pose_detection` and `pose_landmark_by_roi` graphs (read, not
 copied; the conventions are documented at each function). The building blocks are the face
-mesh's: anchors, decoding and NMS in `ssd.py`, ROIs and crops as 2x3 affines in `crops.py`.
+mesh's: anchors, decoding and NMS in `runtime/ssd.py`, ROIs and crops as 2x3 affines in
+`runtime/crops.py`.
 
 1. `detector_input`: the image letterboxed into 224x224 (`crops.letterbox_roi`: aspect kept,
    black bars), RGB in [-1, 1].
