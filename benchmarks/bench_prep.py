@@ -71,7 +71,7 @@ def geometry_per_core(data: Path, n: int) -> dict:
     import cv2
 
     from ga3ce_prep.datasets import open_dataset
-    from ga3ce_prep.estimators.depth_completion import complete_depth
+    from ga3ce_prep.estimators.depth.completion import complete_depth
     from ga3ce_prep.frames import load_depth
     from ga3ce_prep.geometry import head_position, object_positions
     from ga3ce_prep.stages.head import DepthHead

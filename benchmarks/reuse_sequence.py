@@ -84,7 +84,7 @@ def compare(seg, frames: list, settings: dict, noise_every: int = NOISE_EVERY) -
 
 def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> dict:
     """The reuse run with `params` over `data` against the exact run's objects and seconds."""
-    from ga3ce_prep.estimators.amg_reuse import FrameCues, SequenceReuse
+    from ga3ce_prep.estimators.segment.reuse import FrameCues, SequenceReuse
 
     state = SequenceReuse(params)
     reuse, reuse_s, steps = [], [], []

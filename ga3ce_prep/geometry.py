@@ -19,6 +19,15 @@ def normalize(v: np.ndarray, axis: int = -1, eps: float = 1e-12) -> np.ndarray:
     return v / np.maximum(n, eps)
 
 
+def unit_direction(v: np.ndarray, what: str, min_norm: float = 1e-6) -> np.ndarray:
+    """v / |v| as float32, the direction a view estimate stands for; FrameError "<what> is [...], not
+    a direction" when |v| is not finite or is below min_norm."""
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < min_norm:
+        raise FrameError(f"{what} is {np.asarray(v).tolist()}, not a direction")
+    return (v / n).astype(np.float32)
+
+
 def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle in degrees between direction vectors a and b (..., 3), any lengths."""
     cos = np.sum(normalize(a) * normalize(b), axis=-1)

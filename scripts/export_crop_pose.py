@@ -12,7 +12,7 @@ your install (MeTRAbs's `metrabs_pytorch` with `posepile`, `simplepyutils` and h
 TorchScript file and torchvision): none of it is part of ga3ce-prep.
 
 Not run here: the weights cannot be downloaded on the machines this project is built on. What the
-tests check is the shared part (`ga3ce_prep.estimators.crop_pose_export.save_crop_model`: tracing,
+tests check is the shared part (`ga3ce_prep.estimators.pose.crop_export.save_crop_model`: tracing,
 the files, the loaders, the comparison) on tiny models. Unchecked without the weights: that the
 authors' classes load as called below; that MeTRAbs's crop model traces (and whether it exports to
 ONNX: its absolute-pose step solves a least-squares system, `torch.linalg.lstsq`, which the
@@ -133,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--no-onnx", action="store_true", help="write the TorchScript file only")
     args = ap.parse_args(argv)
 
-    from ga3ce_prep.estimators.crop_pose import select_joints
-    from ga3ce_prep.estimators.crop_pose_export import save_crop_model
+    from ga3ce_prep.estimators.pose.crop import select_joints
+    from ga3ce_prep.estimators.pose.crop_export import save_crop_model
 
     if args.family == "metrabs":
         module, side, names = load_metrabs(args.model_dir)

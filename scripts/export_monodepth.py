@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from ga3ce_prep.estimators.monodepth import (  # noqa: E402
+from ga3ce_prep.estimators.depth.monodepth import (  # noqa: E402
     PRESETS,
     MonoDepthEstimator,
     MonoDepthOptions,

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from ga3ce_prep.errors import ConfigError
-from ga3ce_prep.estimators import amg
+from ga3ce_prep.estimators.segment import amg
 
 
 def test_point_grid_is_cell_centres_x_fastest():

@@ -1,5 +1,5 @@
 """Segment-everything reuse across the frames of a camera sequence (`reuse: sequence`,
-estimators/amg_reuse.py) on the synthetic world, with a scripted decoder whose masks are the
+estimators/segment/reuse.py) on the synthetic world, with a scripted decoder whose masks are the
 world's instance masks of each frame: where only the person moved, reuse gives the exact
 generator's masks while decoding a fraction of the prompts."""
 import dataclasses
@@ -10,8 +10,8 @@ import onnx
 import pytest
 
 from ga3ce_prep.datasets import open_dataset
-from ga3ce_prep.estimators.amg_reuse import FrameCues, ReuseParams, SequenceReuse, box_cells, mask_cells, to_cells
-from ga3ce_prep.estimators.mobilesam import MobileSamSegmenter, SegmenterOptions
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+from ga3ce_prep.estimators.segment.reuse import FrameCues, ReuseParams, SequenceReuse, box_cells, mask_cells, to_cells
 from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing import scripted

@@ -13,11 +13,11 @@ from PIL import Image
 
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
-from ga3ce_prep.estimators import blazepose as bp
-from ga3ce_prep.estimators.blazepose_smpl import to_smpl_head30
-from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, invert_affine, letterbox_roi, roi_affine
-from ga3ce_prep.estimators.placement import refine_with_depth, sample_depth, solve_translation, weighted_median
-from ga3ce_prep.estimators.ssd import decode_detections, ssd_anchors, weighted_nms
+from ga3ce_prep.estimators.pose import blazepose as bp
+from ga3ce_prep.estimators.pose.blazepose_smpl import to_smpl_head30
+from ga3ce_prep.estimators.pose.placement import refine_with_depth, sample_depth, solve_translation, weighted_median
+from ga3ce_prep.estimators.runtime.crops import SquareRoi, apply_affine, invert_affine, letterbox_roi, roi_affine
+from ga3ce_prep.estimators.runtime.ssd import decode_detections, ssd_anchors, weighted_nms
 from ga3ce_prep.frames import DepthMap, FrameRef
 from ga3ce_prep.geometry import project
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline

@@ -1,4 +1,4 @@
-"""`pose/onnx` and `pose/torchscript`: the MeTRAbs family's crop contract (estimators/crop_pose.py)
+"""`pose/onnx` and `pose/torchscript`: the MeTRAbs family's crop contract (estimators/pose/crop.py)
 on tiny TorchScript and ONNX models whose outputs are known functions of their inputs: the
 homography crop, the way back to the camera frame, the input's dtype, range and gamma, the joints
 by name, the checks before any work, the depth refinement, and the backends through
@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
-from ga3ce_prep.estimators.crop_pose import (
+from ga3ce_prep.estimators.pose.crop import (
     CropPoseEstimator,
     CropPoseOptions,
     TorchScriptCropModel,
@@ -23,8 +23,8 @@ from ga3ce_prep.estimators.crop_pose import (
     read_joint_names,
     select_joints,
 )
-from ga3ce_prep.estimators.crop_pose_export import WithResolution, save_crop_model
-from ga3ce_prep.estimators.crops import look_at_crop, pyramid_level, warp_homography
+from ga3ce_prep.estimators.pose.crop_export import WithResolution, save_crop_model
+from ga3ce_prep.estimators.runtime.crops import look_at_crop, pyramid_level, warp_homography
 from ga3ce_prep.frames import DepthMap, FrameRef
 from ga3ce_prep.geometry import pixel_ray, project
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline

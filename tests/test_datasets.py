@@ -9,7 +9,7 @@ import pytest
 
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.datasets.base import gaze_direction
-from ga3ce_prep.datasets.gafa import body_boxes, head_boxes
+from ga3ce_prep.datasets.gafa import body_boxes, head_boxes, keypoint_box
 from ga3ce_prep.datasets.safe_pickle import load_pickle
 from ga3ce_prep.errors import DatasetFormatError, FrameError
 from ga3ce_prep.frames import load_depth, load_rgb
@@ -152,6 +152,24 @@ def test_gafa_boxes_follow_gafa_preprocessing():
     # width int(221*0.75)=165, u = -10 + floor(56/2) = 18
     np.testing.assert_allclose(body_boxes(kp)[0], [18, 18, 183, 239])
 
+
+
+def test_gafa_keypoint_box_counts_a_joint_only_with_both_coordinates_and_truncates():
+    """GAFA's KeypointsToBB (data/preprocessed/transforms.py): `kp[np.all(kp != 0, axis=1)]`, then
+    `astype(int)` before the min/max. The adapter's head box and view/gafa's share it."""
+    from ga3ce_prep.estimators.view.gafa import preprocessed_boxes
+
+    kp = np.zeros((2, 25, 3), np.float32)
+    kp[:, 0, :2] = [100.7, 50.2]   # nose
+    kp[:, 1, :2] = [100.3, 80.9]   # neck
+    kp[:, 15, :2] = [95.5, 45.5]   # REye
+    kp[1, 17, :2] = [0, 40]        # REar with u = 0: not detected, although v is not 0
+    kp[1, 18, :2] = [130, 0]       # LEar with v = 0: not detected either
+    box = keypoint_box(kp, (0, 1, 15, 16, 17, 18))
+    np.testing.assert_array_equal(box, [[95, 45, 5, 35], [95, 45, 5, 35]])   # u 95..100, v 45..80
+    assert np.isnan(keypoint_box(kp, (17, 18))).all()
+    head, _ = preprocessed_boxes(kp)
+    np.testing.assert_array_equal(head_boxes(kp), np.concatenate([head[:, :2], head[:, :2] + head[:, 2:]], axis=1))
 
 def _gafa(tmp_path, sessions=("library/1029_2", "kitchen/1015_4", "lab/1013_1", "lab/9999_9")):
     root = tmp_path / "raw_data"

@@ -7,8 +7,9 @@ import pytest
 
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
-from ga3ce_prep.estimators.crops import SquareRoi, apply_affine, crop, invert_affine, roi_affine
-from ga3ce_prep.estimators.facemesh import (
+from ga3ce_prep.estimators.runtime.crops import SquareRoi, apply_affine, crop, invert_affine, roi_affine
+from ga3ce_prep.estimators.runtime.ssd import decode_regressors, ssd_anchors, weighted_nms
+from ga3ce_prep.estimators.view.facemesh import (
     FaceDetection,
     FaceMeshEstimator,
     blazeface_anchors,
@@ -16,7 +17,6 @@ from ga3ce_prep.estimators.facemesh import (
     facing_direction,
     head_direction,
 )
-from ga3ce_prep.estimators.ssd import decode_regressors, ssd_anchors, weighted_nms
 from ga3ce_prep.geometry import back_project, look_at_rotation, normalize
 from ga3ce_prep.skeleton import J
 from ga3ce_prep.stages import backend_class

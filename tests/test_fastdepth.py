@@ -5,8 +5,8 @@ import pytest
 
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ModelFileError
-from ga3ce_prep.estimators.fastdepth import NET_FOCAL_PX, FastDepthEstimator, centre_crop_4x3, focal_rescale
-from ga3ce_prep.estimators.onnx_runtime import RuntimeParams
+from ga3ce_prep.estimators.depth.fastdepth import NET_FOCAL_PX, FastDepthEstimator, centre_crop_4x3, focal_rescale
+from ga3ce_prep.estimators.runtime.onnx_runtime import RuntimeParams
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.testing.photos import K_from_hfov, photo, photo_frame

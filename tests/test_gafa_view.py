@@ -13,7 +13,7 @@ from PIL import Image
 
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.errors import FrameError, ModelFileError
-from ga3ce_prep.estimators.gafa_view import (
+from ga3ce_prep.estimators.view.gafa import (
     GafaViewEstimator,
     body_crop,
     body_velocity,

@@ -15,11 +15,11 @@ from onnx import TensorProto, helper
 
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
 from ga3ce_prep.estimators.cli import export_gfie_view
-from ga3ce_prep.estimators.gfie_head import GFIEHeadEstimator, GFIEHeadNet, load_gfie_head
-from ga3ce_prep.estimators.gfie_net import load_gfie_net
-from ga3ce_prep.estimators.head_crop import CropParams, expand_box, head_crop, head_input
-from ga3ce_prep.estimators.head_onnx import HeadOnnxEstimator, HeadOnnxOptions
-from ga3ce_prep.estimators.resnet import ResNet50
+from ga3ce_prep.estimators.view.gfie_head import GFIEHeadEstimator, GFIEHeadNet, load_gfie_head
+from ga3ce_prep.estimators.view.gfie_net import load_gfie_net
+from ga3ce_prep.estimators.view.head_crop import CropParams, expand_box, head_crop, head_input
+from ga3ce_prep.estimators.view.head_onnx import HeadOnnxEstimator, HeadOnnxOptions
+from ga3ce_prep.estimators.view.resnet import ResNet50
 from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
 from ga3ce_prep.testing.paper_models import gfie_checkpoint, gfie_state, random_gfie_net

@@ -1,5 +1,5 @@
 """GFIE's gaze-following modules ("GFM": stereo FoV + heatmap network), its 3D step and its metrics
-(estimators/gfie_net.py, train/gfm.py) against hand-computed cases and GFIE's formulas' behaviour
+(estimators/view/gfie_net.py, train/gfm.py) against hand-computed cases and GFIE's formulas' behaviour
 on edge cases, and `eval --gfm` end to end on the synthetic GFIE-format world.
 No real GFIE weights exist here: the checkpoints are random networks saved as GFIE saves them."""
 import json
@@ -11,8 +11,8 @@ import torch
 from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
-from ga3ce_prep.estimators.gfie_head import load_gfie_head
-from ga3ce_prep.estimators.gfie_net import (
+from ga3ce_prep.estimators.view.gfie_head import load_gfie_head
+from ga3ce_prep.estimators.view.gfie_net import (
     RECIPES,
     GFIENet,
     gaze_point_3d,
@@ -22,7 +22,7 @@ from ga3ce_prep.estimators.gfie_net import (
     scene_input,
     stereo_fov,
 )
-from ga3ce_prep.estimators.head_crop import head_input
+from ga3ce_prep.estimators.view.head_crop import head_input
 from ga3ce_prep.frames import load_depth, load_rgb
 from ga3ce_prep.geometry import angular_error_deg, normalize
 from ga3ce_prep.model import ModelConfig

@@ -10,15 +10,15 @@ from onnx import numpy_helper
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
-from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import (
+from ga3ce_prep.estimators.segment.amg import transform_coords
+from ga3ce_prep.estimators.segment.fast_decoder import FastDecoder
+from ga3ce_prep.estimators.segment.mobilesam import (
     ImageEncoder,
     MobileSamSegmenter,
     OfficialDecoder,
     SegmenterOptions,
     exported_token,
     single_point_prompts,
-    transform_coords,
 )
 from ga3ce_prep.registry_models import model_path
 from ga3ce_prep.stages import backend_class

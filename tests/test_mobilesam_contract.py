@@ -9,7 +9,9 @@ import onnx
 import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
-from ga3ce_prep.estimators.mobilesam import (
+from ga3ce_prep.estimators.runtime.onnx_runtime import resolve_providers
+from ga3ce_prep.estimators.segment.amg import transform_coords
+from ga3ce_prep.estimators.segment.mobilesam import (
     ImageEncoder,
     MobileSamSegmenter,
     OfficialDecoder,
@@ -17,9 +19,7 @@ from ga3ce_prep.estimators.mobilesam import (
     mask_mode,
     normalise_and_pad,
     resize_longest_side,
-    transform_coords,
 )
-from ga3ce_prep.estimators.onnx_runtime import resolve_providers
 from ga3ce_prep.geometry import object_positions
 from ga3ce_prep.testing import scripted
 

@@ -7,8 +7,8 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from ga3ce_prep.estimators.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
+from ga3ce_prep.estimators.segment.fast_decoder import FastDecoder
+from ga3ce_prep.estimators.segment.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
 from ga3ce_prep.testing import mobilesam_random
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.testing.scripted import drawn_frame
@@ -53,7 +53,7 @@ def prompt_grid():
 
 @pytest.fixture(scope="module")
 def embedding():
-    from ga3ce_prep.estimators.mobilesam import ImageEncoder
+    from ga3ce_prep.estimators.segment.mobilesam import ImageEncoder
     rng = np.random.default_rng(3)
     rgb = rng.integers(0, 256, (480, 640, 3)).astype(np.uint8)
     return ImageEncoder(ENC, CPU, 1).embed(rgb)
@@ -111,10 +111,10 @@ def test_mask_graph_gelus_take_no_separate_bias(tmp_path):
     the separate bias pass cost more than the concat)."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder import FastDecoder
-    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
-    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
-    from ga3ce_prep.estimators.onnx_runtime import session_options
+    from ga3ce_prep.estimators.runtime.onnx_runtime import session_options
+    from ga3ce_prep.estimators.segment.fast_decoder import FastDecoder
+    from ga3ce_prep.estimators.segment.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.segment.fast_decoder_weights import decoder_weights
 
     w = decoder_weights(DEC)
     so = session_options(1)
@@ -136,9 +136,9 @@ def test_graphs_in_pixel_slices_give_the_whole_images_outputs():
     4096 pixels is refused."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder_graphs import STATE, TOKEN_IMAGE_INPUTS, Derived, build_mask_graph
-    from ga3ce_prep.estimators.fast_decoder_tokens import build_token_graph
-    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
+    from ga3ce_prep.estimators.segment.fast_decoder_graphs import STATE, TOKEN_IMAGE_INPUTS, Derived, build_mask_graph
+    from ga3ce_prep.estimators.segment.fast_decoder_tokens import build_token_graph
+    from ga3ce_prep.estimators.segment.fast_decoder_weights import decoder_weights
 
     dec = FastDecoder(DEC, CPU, 1)
     assert dec.CPU_TOKEN_PIXEL_CHUNKS > 1 and dec.CPU_MASK_PIXEL_CHUNKS > 1
@@ -176,10 +176,10 @@ def test_fast_decoder_graphs_copy_nothing_into_outputs_and_transpose_no_attentio
     left unfused."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.fast_decoder_graphs import Derived, build_mask_graph
-    from ga3ce_prep.estimators.fast_decoder_tokens import build_token_graph
-    from ga3ce_prep.estimators.fast_decoder_weights import decoder_weights
-    from ga3ce_prep.estimators.onnx_runtime import session_options
+    from ga3ce_prep.estimators.runtime.onnx_runtime import session_options
+    from ga3ce_prep.estimators.segment.fast_decoder_graphs import Derived, build_mask_graph
+    from ga3ce_prep.estimators.segment.fast_decoder_tokens import build_token_graph
+    from ga3ce_prep.estimators.segment.fast_decoder_weights import decoder_weights
 
     w = decoder_weights(DEC)
     d = Derived.from_weights(w)
@@ -208,7 +208,7 @@ def test_graph_builder_outputs_rename_their_producer():
     name working, and falls back to an Identity for an input or a value exposed twice."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.onnx_graph import GraphBuilder
+    from ga3ce_prep.estimators.runtime.onnx_graph import GraphBuilder
 
     g = GraphBuilder("t")
     x = g.input("x", [2])
@@ -234,7 +234,7 @@ def test_both_decoders_are_mask_decoders():
 
 
 def test_io_binding_is_chosen_by_the_provider():
-    from ga3ce_prep.estimators.fast_decoder import use_io_binding
+    from ga3ce_prep.estimators.segment.fast_decoder import use_io_binding
 
     assert use_io_binding("auto", ["CUDAExecutionProvider", "CPUExecutionProvider"])
     assert not use_io_binding("auto", CPU)

@@ -11,7 +11,7 @@ from PIL import Image
 
 from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
-from ga3ce_prep.estimators.monodepth import (
+from ga3ce_prep.estimators.depth.monodepth import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     PRESETS,

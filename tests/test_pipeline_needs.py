@@ -1,5 +1,7 @@
 """Backends that read another stage's output (`Backend.needs`) and record the source of each
 frame's result (`Backend.sources`): the face-mesh view falling back to the pose, end to end."""
+from pathlib import Path
+
 import numpy as np
 
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
@@ -45,8 +47,6 @@ def test_facemesh_view_falls_back_to_the_pose_and_the_store_says_so(synth_world,
 def test_a_batch_that_raises_is_retried_frame_by_frame():
     """StageEntry.attempt_batch: one frame that breaks its batch's call fails alone; a per-frame
     exception in the batch's results is that frame's failure record."""
-    from pathlib import Path
-
     from ga3ce_prep.errors import FrameError
     from ga3ce_prep.frames import FrameRef
     from ga3ce_prep.pipeline.tasks import Shard, new_entry
@@ -65,3 +65,24 @@ def test_a_batch_that_raises_is_retried_frame_by_frame():
     assert entry.fail_idx == [1, 3]
     assert entry.fail_message == ["b is broken", "d has no face"]
     np.testing.assert_array_equal(entry.columns["view"][[0, 2]], [[0, 0, -1], [0, 0, -1]])
+
+
+def test_the_batch_protocol_is_a_backend_method():
+    """`Backend.batch` is what the pose and view tasks call when batch_size() > 1: a backend that
+    says it batches overrides it, and the base names the backend that forgot to."""
+    import pytest
+
+    from ga3ce_prep.stages import BACKENDS, backend_class
+    from ga3ce_prep.stages.base import Backend, BackendContext
+
+    batching = [k for k in BACKENDS if backend_class(*k.split("/")).batch is not Backend.batch]
+    assert batching == ["view/gfie"]
+
+    class Forgetful(Backend):
+        stage, name = "view", "forgetful"
+
+        def batch_size(self) -> int:
+            return 4
+
+    with pytest.raises(NotImplementedError, match="Forgetful: batch_size"):
+        Forgetful({}, BackendContext(Path("."))).batch([])

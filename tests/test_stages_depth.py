@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ga3ce_prep.errors import FrameError
-from ga3ce_prep.estimators.depth_completion import CompletionParams, complete_depth
+from ga3ce_prep.estimators.depth.completion import CompletionParams, complete_depth
 from ga3ce_prep.frames import FrameRef
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.stages.depth import SensorDepth

@@ -122,11 +122,15 @@ def frame_id(session: str, camera: str, frame: int) -> str:
     return f"{session}/{camera}/{int(frame):06d}"
 
 
-def _keypoint_boxes(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarray:
-    """(N, 4) u, v, w, h boxes from the min/max of each frame's detected (non-zero) keypoints;
-    NaN where none is detected. kp: (N, 25, >=2) pixels, 0 = undetected."""
-    uv = kp[:, joints, :2].astype(np.float64)
-    det = np.any(uv != 0, axis=-1)
+def keypoint_box(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarray:
+    """GAFA's KeypointsToBB (data/preprocessed/transforms.py) on each frame: (N, 4) u, v, w, h from
+    the min/max of the frame's detected `joints`, NaN where none is detected. kp: (N, 25, >=2)
+    pixels. As GAFA's: a joint counts when both its coordinates are non-zero (OpenPose writes 0, 0
+    for an undetected one), and its coordinates are truncated to integers (`astype(int)`) before
+    the min/max. The one box rule of the adapter's boxes and of view/gafa's inputs."""
+    uv = np.asarray(kp, np.float64)[:, joints, :2]
+    det = np.all(uv != 0, axis=-1)
+    uv = np.trunc(uv)
     lo = np.where(det[..., None], uv, np.inf).min(axis=1)
     hi = np.where(det[..., None], uv, -np.inf).max(axis=1)
     box = np.concatenate([lo, hi - lo], axis=1)
@@ -149,16 +153,25 @@ def _square(box: np.ndarray) -> np.ndarray:
     return np.stack([u - np.floor((side - w) / 2), v - np.floor((side - h) / 2), side, side], axis=1)
 
 
+def keypoint_squares(kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GAFA's head box and body square, each (N, 4) u, v, w, h pixels, from BODY_25 keypoints
+    (N, 25, >=2): head_transform (`keypoint_box` of nose, neck, eyes, ears; ExpandBB(0.85, -0.2,
+    0.1, 0.1); ExpandBBRect) and body_transform's first three steps (all joints; ExpandBB(0.15, 0.05,
+    0.2, 0.2); ExpandBBRect), before its ReshapeBBRect to 3:4 (data/preprocessed/preprocess.py)."""
+    head = _square(_expand(keypoint_box(kp, BODY25_HEAD), top=0.85, bottom=-0.2, left=0.1, right=0.1))
+    body = _square(_expand(keypoint_box(kp, slice(None)), top=0.15, bottom=0.05, left=0.2, right=0.2))
+    return head, body
+
+
 def head_boxes(kp: np.ndarray) -> np.ndarray:
     """(N, 4) x1, y1, x2, y2 head boxes from BODY_25 keypoints as GAFA's head_transform builds them."""
-    box = _square(_expand(_keypoint_boxes(kp, BODY25_HEAD), top=0.85, bottom=-0.2, left=0.1, right=0.1))
+    box = keypoint_squares(kp)[0]
     return np.concatenate([box[:, :2], box[:, :2] + box[:, 2:]], axis=1)
 
 
 def body_boxes(kp: np.ndarray) -> np.ndarray:
     """(N, 4) x1, y1, x2, y2 body boxes as GAFA's body_transform builds them (square, then 3:4)."""
-    box = _square(_expand(_keypoint_boxes(kp, slice(None)), top=0.15, bottom=0.05, left=0.2, right=0.2))
-    u, v, side, _ = box.T
+    u, v, side, _ = keypoint_squares(kp)[1].T
     w = np.trunc(side * 192 / 256)
     u = u + np.floor((side - w) / 2)
     return np.stack([u, v, u + w, v + side], axis=1)

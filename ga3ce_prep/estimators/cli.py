@@ -3,7 +3,7 @@
 repository, or the `mobilesam-mirror` package) and torch; none of that code is part of ga3ce-prep.
 
 `ga3ce-prep export-gfie-view`: GFIE's checkpoint -> its head network as one ONNX file for
-`view/onnx` (the network is ours, estimators/gfie_head.py; only torch is needed)."""
+`view/onnx` (the network is ours, estimators/view/gfie_head.py; only torch is needed)."""
 from __future__ import annotations
 
 import functools
@@ -80,8 +80,8 @@ def export_mobilesam(checkpoint: Path, out_dir: Path, opset: int, check: bool) -
     enc, dec = export_onnx(checkpoint, out_dir, opset)
     click.echo(f"wrote {enc}\nwrote {dec}")
     if check:
-        from .mobilesam import MobileSamSegmenter
-        from .onnx_runtime import file_sha256
+        from ..files import file_sha256
+        from .segment.mobilesam import MobileSamSegmenter
 
         err = MobileSamSegmenter(enc, dec, verify=False).verify()
         click.echo(f"interfaces OK; fast decoder matches the exported decoder to {err:.1e}")
@@ -101,7 +101,7 @@ def export_gfie_view(checkpoint: Path, out: Path, opset: int) -> None:
     \b
       stages: {view: {backend: onnx, params: {model: OUT}}}
     """
-    from .gfie_head import export_onnx
-    from .onnx_runtime import file_sha256
+    from ..files import file_sha256
+    from .view.gfie_head import export_onnx
 
     click.echo(f"wrote {export_onnx(checkpoint, out, opset)}\nsha256 {file_sha256(out)}")

@@ -78,22 +78,6 @@ def file_identity(path: str | Path | None) -> list[Any] | None:
         return [str(path), None, None]
 
 
-_sha_cache: dict[tuple[str, int, int], str] = {}
-
-
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 hex of a file's bytes (memoised per path, size and modification time)."""
-    st = os.stat(path)
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _sha_cache:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        _sha_cache[key] = h.hexdigest()
-    return _sha_cache[key]
-
-
 def content_digest(arrays: dict[str, Any]) -> str:
     """SHA-256 hex of an entry's arrays as they read back: by name (sorted), each array's dtype,
     shape and bytes; the DIGEST member itself left out."""

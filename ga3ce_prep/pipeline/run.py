@@ -34,10 +34,11 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, StoreError
+from ..files import file_sha256
 from ..frames import FrameRef, Window, frame_windows
 from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION, SOURCE_STAGES, UNFINISHED, validate_store_attrs
-from .cache import Cache, file_identity, file_sha256, stable_hash
+from .cache import Cache, file_identity, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, LostEntries, finalize
 from .graph import execute

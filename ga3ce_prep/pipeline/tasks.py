@@ -337,7 +337,7 @@ def stage_task(env: TaskEnv, stage: str, shard: Shard, *_upstream: Any) -> list[
     if b.batch_size() > 1:  # the backend's network runs on several frames at once
         for k in range(0, len(rows), b.batch_size()):
             chunk = rows[k:k + b.batch_size()]
-            entry.attempt_batch(chunk, getattr(b, f"{stage}_batch"), [shard.frames[i] for i in chunk],
+            entry.attempt_batch(chunk, b.batch, [shard.frames[i] for i in chunk],
                                 {n: [loaded[n][i] for i in chunk] for n in b.needs})
         return [entry.save(cache)]
     for i in rows:

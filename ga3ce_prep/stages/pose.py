@@ -3,7 +3,7 @@ camera frame. A failure degrades the frame (NaN pose); GA3CE then runs without t
 
 Backends: `precomputed` (an offline estimator's output, stages/precomputed.py layout), `oracle`
 (the synthetic truth plus estimator-like seeded noise, stages/oracle_noise.py `noisy_pose`) and
-`blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/blazepose.py; it
+`blazepose` (MediaPipe's BlazePose GHUM from the registry models, estimators/pose/blazepose.py; it
 reads the depth stage's map, so it runs in the geometry task). The paper's MeTRAbs-family crop
 model from the user's file: `onnx` and `torchscript`, in stages/pose_crop.py.
 """
@@ -16,8 +16,8 @@ from typing import Literal
 import numpy as np
 
 from ..errors import FrameError
-from ..estimators.blazepose import BlazePoseOptions, place_landmarks
-from ..estimators.blazepose_smpl import to_smpl_head30
+from ..estimators.pose.blazepose import BlazePoseOptions, place_landmarks
+from ..estimators.pose.blazepose_smpl import to_smpl_head30
 from ..frames import DepthMap, FrameRef, load_rgb
 from ..params import param
 from ..skeleton import N_JOINTS
@@ -99,7 +99,7 @@ class BlazePose(ProcessEstimator, PoseBackend):
     body box (else the one around its head box, else the best detection), world landmarks
     placed in the camera frame by a 2D fit through K, their distance then taken from the depth
     stage's map at the visible landmarks (`depth_refine`; `placement.refine_with_depth`), mapped
-    to smpl+head_30 (estimators/blazepose_smpl.py). No person: FrameError (the frame keeps a NaN
+    to smpl+head_30 (estimators/pose/blazepose_smpl.py). No person: FrameError (the frame keeps a NaN
     pose)."""
 
     name = "blazepose"
@@ -130,7 +130,7 @@ class BlazePose(ProcessEstimator, PoseBackend):
         return "pose_detection", f"pose_landmark_{self.p.variant}"
 
     def build_estimator(self):
-        from ..estimators.blazepose import BlazePoseEstimator
+        from ..estimators.pose.blazepose import BlazePoseEstimator
         from ..registry_models import model_path
 
         return BlazePoseEstimator(*(model_path(k) for k in self.registry_keys()), self.p)

@@ -1,5 +1,5 @@
 """`pose/onnx` and `pose/torchscript`: the paper's 3D pose (MeTRAbs / NLF, smpl+head_30) from the
-user's model file, through the MeTRAbs family's crop contract (estimators/crop_pose.py). The two
+user's model file, through the MeTRAbs family's crop contract (estimators/pose/crop.py). The two
 backends share the runner and differ only in the session: ONNX Runtime, or `torch.jit.load`.
 
 The person is the frame's body box, or a box grown from its head box; the pose's distance is
@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..estimators.crop_pose import CropPoseOptions, body_box, joints_file
-from ..estimators.onnx_runtime import RuntimeParams
+from ..estimators.pose.crop import CropPoseOptions, body_box, joints_file
+from ..estimators.runtime.onnx_runtime import RuntimeParams
 from ..frames import DepthMap, FrameRef, load_rgb
 from ..params import param
 from .base import PoseBackend, ProcessEstimator
@@ -37,7 +37,7 @@ class CropPose(ProcessEstimator, PoseBackend):
         return joints_file(self.p.model, self.p.joints)
 
     def build_estimator(self):
-        from ..estimators.crop_pose import CropPoseEstimator, read_joint_names
+        from ..estimators.pose.crop import CropPoseEstimator, read_joint_names
 
         path = self.joints_path()
         names = read_joint_names(path)
@@ -50,7 +50,7 @@ class CropPose(ProcessEstimator, PoseBackend):
 
     def provenance(self) -> dict[str, Any]:
         """The joint list's SHA-256 when it is not a parameter (found beside the model)."""
-        from ..estimators.onnx_runtime import file_sha256
+        from ..files import file_sha256
 
         if self.p.joints is not None:
             return {}
@@ -58,7 +58,7 @@ class CropPose(ProcessEstimator, PoseBackend):
 
     def pose(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
         """depth: the depth stage's map of the frame, at the image's resolution."""
-        from ..estimators.crop_pose import place_with_depth
+        from ..estimators.pose.crop import place_with_depth
 
         p = self.p
         K = np.asarray(frame.K, np.float64)
@@ -80,8 +80,8 @@ class OnnxPose(CropPose):
             file="model", hint=EXPORT_HINT)
 
     def load_model(self):
-        from ..estimators.crop_pose import OnnxCropModel
-        from ..estimators.onnx_runtime import resolve_providers
+        from ..estimators.pose.crop import OnnxCropModel
+        from ..estimators.runtime.onnx_runtime import resolve_providers
 
         p = self.p
         return OnnxCropModel(p.model, resolve_providers(p.providers), p.threads, p.input_dtype, p.resolution)
@@ -101,7 +101,7 @@ class TorchScriptPose(CropPose):
         threads: int = param(2, minimum=1)  # torch intra-op threads (torch.set_num_threads, process-wide)
 
     def load_model(self):
-        from ..estimators.crop_pose import TorchScriptCropModel
+        from ..estimators.pose.crop import TorchScriptCropModel
 
         p = self.p
         return TorchScriptCropModel(p.model, p.device, p.threads, p.resolution)

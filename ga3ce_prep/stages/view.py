@@ -5,11 +5,11 @@ Backends: `precomputed` (stages/precomputed.py layout), `oracle` (the synthetic 
 optionally pulled toward the head direction, plus noise calibrated to a mean angular error:
 stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees),
 `facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
-estimators/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate),
-`gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/gfie_head.py),
+estimators/view/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate),
+`gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/view/gfie_head.py),
 `onnx` (any head-crop network exported to ONNX, GFIE's crop recipe by default:
-estimators/head_onnx.py) and `gafa` (GAFA's 7-frame head-and-body gaze network on your ONNX
-export: estimators/gafa_view.py; a windowed backend, `Backend.window`).
+estimators/view/head_onnx.py) and `gafa` (GAFA's 7-frame head-and-body gaze network on your ONNX
+export: estimators/view/gafa.py; a windowed backend, `Backend.window`).
 """
 from __future__ import annotations
 
@@ -21,11 +21,11 @@ import numpy as np
 
 from ..datasets.gafa import WINDOW
 from ..errors import ConfigError, FrameError
-from ..estimators.facemesh import FaceMeshOptions
-from ..estimators.head_onnx import HeadOnnxOptions
-from ..estimators.onnx_runtime import RuntimeParams
+from ..estimators.runtime.onnx_runtime import RuntimeParams
+from ..estimators.view.facemesh import FaceMeshOptions
+from ..estimators.view.head_onnx import HeadOnnxOptions
 from ..frames import FrameRef, Window, load_rgb
-from ..geometry import normalize
+from ..geometry import normalize, unit_direction
 from ..params import param
 from ..skeleton import head_direction_from_pose
 from .base import ProcessEstimator, Sourced, ViewBackend
@@ -52,11 +52,7 @@ class PrecomputedView(ViewBackend):
         self._table()
 
     def view(self, frame: FrameRef) -> np.ndarray:
-        v = self._table().get(frame.id)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-6:
-            raise FrameError(f"view of frame {frame.id} in {self.p.file} is {v.tolist()}, not a direction")
-        return (v / n).astype(np.float32)
+        return unit_direction(self._table().get(frame.id), f"view of frame {frame.id} in {self.p.file}")
 
 
 class OracleView(ViewBackend):
@@ -89,7 +85,7 @@ class OracleView(ViewBackend):
 
 class FaceMeshView(ProcessEstimator, ViewBackend):
     """v = the head direction of the face in the head box: BlazeFace, the face mesh, then the
-    facing direction of its landmarks, perspective-corrected with K (estimators/facemesh.py).
+    facing direction of its landmarks, perspective-corrected with K (estimators/view/facemesh.py).
     The models come from the registry cache (`ga3ce-prep models fetch`), SHA-256 checked.
 
     Where no face is visible (the subject faces away, an occluded or tiny face), v is the head
@@ -111,7 +107,7 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
         return "face_detection", "face_landmark"  # BlazeFace short-range, the face mesh
 
     def build_estimator(self):
-        from ..estimators.facemesh import FaceMeshEstimator
+        from ..estimators.view.facemesh import FaceMeshEstimator
         from ..registry_models import model_path
 
         return FaceMeshEstimator(*(model_path(k) for k in self.registry_keys()), self.p)
@@ -138,7 +134,7 @@ ONNX_HINT = ("export your head-crop network to ONNX (docs/models/view.md, Head-c
 
 class GFIEView(ProcessEstimator, ViewBackend):
     """v = GFIE's head-image gaze network (its EGD module) on GFIE's head crop of the frame's head
-    box, in torch, with the weights of GFIE's released checkpoint (estimators/gfie_head.py)."""
+    box, in torch, with the weights of GFIE's released checkpoint (estimators/view/gfie_head.py)."""
 
     name = "gfie"
 
@@ -162,24 +158,24 @@ class GFIEView(ProcessEstimator, ViewBackend):
         """Before any work: the device exists and the checkpoint holds GFIE's head network."""
         import torch
 
-        from ..estimators.gfie_head import load_gfie_head
+        from ..estimators.view.gfie_head import load_gfie_head
 
         if self.p.device == "cuda" and not torch.cuda.is_available():
             raise ConfigError("stages.view.params.device: cuda, but this torch build sees no CUDA device (use cpu)")
         load_gfie_head(self.p.checkpoint)
 
     def build_estimator(self):
-        from ..estimators.gfie_head import GFIEHeadEstimator
+        from ..estimators.view.gfie_head import GFIEHeadEstimator
 
         return GFIEHeadEstimator(self.p.checkpoint, self.p.device, self.p.threads)
 
     def view(self, frame: FrameRef) -> np.ndarray:
         return self.estimator().estimate(load_rgb(frame.image_path), frame.head_box)
 
-    def view_batch(self, frames: list[FrameRef]) -> list[np.ndarray | Exception]:
+    def batch(self, frames: list[FrameRef]) -> list[np.ndarray | Exception]:
         """v for several frames in one forward pass; a frame whose image cannot be read gets its
         FrameError."""
-        from ..estimators.head_crop import CropParams, head_input
+        from ..estimators.view.head_crop import CropParams, head_input
 
         inputs, out = [], []
         for f in frames:
@@ -194,7 +190,7 @@ class GFIEView(ProcessEstimator, ViewBackend):
 
 class OnnxView(ProcessEstimator, ViewBackend):
     """v = a head-crop network exported to ONNX: the crop recipe, the output and its axes as
-    parameters (GFIE's crop and our camera frame by default), normalised (estimators/head_onnx.py)."""
+    parameters (GFIE's crop and our camera frame by default), normalised (estimators/view/head_onnx.py)."""
 
     name = "onnx"
 
@@ -208,7 +204,7 @@ class OnnxView(ProcessEstimator, ViewBackend):
         self.build_estimator()
 
     def build_estimator(self):
-        from ..estimators.head_onnx import HeadOnnxEstimator
+        from ..estimators.view.head_onnx import HeadOnnxEstimator
 
         return HeadOnnxEstimator(self.p.model, self.p)
 
@@ -218,7 +214,7 @@ class OnnxView(ProcessEstimator, ViewBackend):
 
 class GafaView(ProcessEstimator, ViewBackend):
     """v = the gaze that GAFA's GazeNet gives the centre frame of the 7-frame window centred on the
-    frame (estimators/gafa_view.py builds its inputs as GAFA's preprocessing and loader do).
+    frame (estimators/view/gafa.py builds its inputs as GAFA's preprocessing and loader do).
 
     GAFA's contiguity rule (`dataloader/gafa.py`): a window is 7 consecutive raw frame numbers of
     the camera sequence, all present. A frame within 3 numbers of a gap or of either end of its
@@ -240,12 +236,12 @@ class GafaView(ProcessEstimator, ViewBackend):
         self.estimator()
 
     def build_estimator(self):
-        from ..estimators.gafa_view import GafaViewEstimator
+        from ..estimators.view.gafa import GafaViewEstimator
 
         return GafaViewEstimator(self.p.model, self.p)
 
     def view(self, frame: FrameRef, window: Window) -> np.ndarray:
-        from ..estimators.gafa_view import body_velocity, head_masks, normalize_crops, preprocessed_boxes
+        from ..estimators.view.gafa import body_velocity, head_masks, normalize_crops, preprocessed_boxes
 
         if not window.complete:
             missing = [frame.index + k - WINDOW // 2 for k, f in enumerate(window.frames) if f is None]
@@ -261,8 +257,5 @@ class GafaView(ProcessEstimator, ViewBackend):
         est = self.estimator()
         crops = np.stack([est.crop(f.image_path, b) for f, b in zip(window.frames, body[1:])])
         gaze = est.predict(normalize_crops(crops), head_masks(head[1:], body[1:]), body_velocity(body))
-        v = np.asarray(gaze[WINDOW // 2], np.float64)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-6:
-            raise FrameError(f"GAFA's network gave {v.tolist()} for frame {frame.id}, not a direction")
-        return (v / n).astype(np.float32)
+        what = f"GAFA's network's output for frame {frame.id}"
+        return unit_direction(np.asarray(gaze[WINDOW // 2], np.float64), what)

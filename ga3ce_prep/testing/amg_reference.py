@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..estimators import amg
-from ..estimators.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, single_point_prompts, transform_coords
+from ..estimators.segment import amg
+from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, single_point_prompts
 
 
 @dataclass
@@ -51,7 +51,7 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
     with timer("encoder"):
         emb = encoder.embed(rgb)
     points = amg.build_point_grid(options.points_per_side) * np.array([w, h], np.float64)   # (n, 2) pixels
-    coords = transform_coords(points, (h, w))                                               # (n, 2) 1024 frame
+    coords = amg.transform_coords(points, (h, w))                                           # (n, 2) 1024 frame
     tokens = np.asarray(decoder.candidate_tokens)                                           # (k,)
     iou_thresh = np.float32(options.pred_iou_thresh)
     batches, cands = [], []

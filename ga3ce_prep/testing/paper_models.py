@@ -58,9 +58,9 @@ class Constant(torch.nn.Module):
 
 
 def random_gfie_net(seed: int = 0):
-    """GFIE's whole network (`estimators/gfie_net.py::GFIENet`) with random weights and random BN
+    """GFIE's whole network (`estimators/view/gfie_net.py::GFIENet`) with random weights and random BN
     statistics (so a load that skipped any tensor would change the output)."""
-    from ..estimators.gfie_net import GFIENet
+    from ..estimators.view.gfie_net import GFIENet
 
     torch.manual_seed(seed)
     net = GFIENet()
@@ -95,7 +95,7 @@ def write_paper_models(folder: Path, depth_m: float = 2.0, crop_size: int = 64) 
     CROP_DEPTH_MM on the crop axis plus a small per-joint offset."""
     import onnx
 
-    from ..estimators.crop_pose_export import save_crop_model
+    from ..estimators.pose.crop_export import save_crop_model
     from ..skeleton import JOINT_NAMES
     from . import scripted
 

@@ -11,7 +11,7 @@ and benchmarks.
   `single_mask=True`: one mask per prompt, as SAM's `--return-single-mask` export of one click
   (the best of tokens 1..3: token 1).
 - `renamed(model, names)`: a copy with inputs/outputs renamed (exports that name tensors their own way).
-- `centroid_gazenet()`: GAFA's view interface (estimators/gafa_view.py) whose gaze for each frame is
+- `centroid_gazenet()`: GAFA's view interface (estimators/view/gafa.py) whose gaze for each frame is
   a known function of its inputs (`centroid_gaze`, the same in numpy): the head mask's centroid,
   the window's summed body velocity and the frame's mean image value.
 """
@@ -22,9 +22,9 @@ import numpy as np
 import onnx
 from onnx import TensorProto
 
-from ..estimators.amg import preprocess_shape
-from ..estimators.mobilesam import PIXEL_MEAN, PIXEL_STD
-from ..estimators.onnx_graph import GraphBuilder
+from ..estimators.runtime.onnx_graph import GraphBuilder
+from ..estimators.segment.amg import preprocess_shape
+from ..estimators.segment.mobilesam import PIXEL_MEAN, PIXEL_STD
 
 
 def _pool_to_embedding(g: GraphBuilder, x: str) -> str:

@@ -1,7 +1,7 @@
 """GFIE's gaze-following evaluation: the columns of GFIE's Table 1 (AUC, L2 distance, 3D distance,
 3D angle) for "GFIE", "Ours" and "Ours + GFM" (`ga3ce-prep eval --gfm CHECKPOINT`).
 
-- GFIE: GFIE's whole network (estimators/gfie_net.py) as GFIE's `inference.py` runs it: its head
+- GFIE: GFIE's whole network (estimators/view/gfie_net.py) as GFIE's `inference.py` runs it: its head
   branch's g feeds the stereo-FoV maps, the heatmap and the 3D step.
 - Ours: GA3CE's g; only the 3D angle (the angle between g and the ground truth).
 - Ours + GFM: GA3CE's g replaces the head branch's g in the stereo-FoV maps and in the 3D step
@@ -68,8 +68,8 @@ def _mean(x: np.ndarray) -> float:
 
 def _gfm_frame(ref: FrameRef, recipe, g: np.ndarray) -> dict[str, Any]:
     """One frame's network inputs and what its scoring needs; FrameError when it cannot be read."""
-    from ..estimators.gfie_net import head_location, matrix_t, scene_input
-    from ..estimators.head_crop import head_input
+    from ..estimators.view.gfie_net import head_location, matrix_t, scene_input
+    from ..estimators.view.head_crop import head_input
 
     if not (np.all(np.isfinite(ref.eye)) and np.all(np.isfinite(ref.gaze_target))):
         raise FrameError("no annotated 3D eye and target")
@@ -88,7 +88,7 @@ def _gfm_frame(ref: FrameRef, recipe, g: np.ndarray) -> dict[str, Any]:
 def _score(net, chunk: list[dict[str, Any]], device: str, per: dict[str, dict[str, list[float]]]) -> None:
     """Run GFIE's network on a batch of frames (`_gfm_frame`) with GFIE's g and with ours, and
     append each method's per-frame metrics to `per`."""
-    from ..estimators.gfie_net import gaze_point_3d
+    from ..estimators.view.gfie_net import gaze_point_3d
 
     x = {key: torch.from_numpy(np.concatenate([f[key] for f in chunk])).to(device)
          for key in ("scene", "head", "head_loc", "matrix_t")}
@@ -121,7 +121,7 @@ def evaluate_gfm(store: ContextStore, rows: np.ndarray, g: np.ndarray, checkpoin
     skipped {frame id: reason}, methods {gfie, ours, ours_gfm: {n, auc, n_auc, l2, dist3d,
     angle3d}} (NaN where a method has no such column)}.
     """
-    from ..estimators.gfie_net import RECIPES, load_gfie_net
+    from ..estimators.view.gfie_net import RECIPES, load_gfie_net
     from ..viz import find_frame_refs
 
     name = str(store.attrs.get("dataset", {}).get("name", ""))

@@ -40,8 +40,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
-from ..params import param
+from ...errors import ConfigError
+from ...params import param
 from . import amg
 
 CELL = 16   # pixels of the 1024 input per embedding cell
@@ -149,13 +149,11 @@ def to_cells(values: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
 
 def box_cells(boxes: np.ndarray, image_hw: tuple[int, int], margin: int) -> np.ndarray:
     """(64, 64) bool: the cells under the finite XYXY image-pixel boxes (k, 4), grown by `margin`."""
-    from .mobilesam import transform_coords
-
     out = np.zeros((GRID, GRID), bool)
     for b in np.asarray(boxes, np.float64).reshape(-1, 4):
         if not np.all(np.isfinite(b)):
             continue
-        (x1, y1), (x2, y2) = np.floor(transform_coords(b.reshape(2, 2), image_hw) / CELL).astype(int)
+        (x1, y1), (x2, y2) = np.floor(amg.transform_coords(b.reshape(2, 2), image_hw) / CELL).astype(int)
         out[max(y1 - margin, 0):max(y2 + margin + 1, 0), max(x1 - margin, 0):max(x2 + margin + 1, 0)] = True
     return out
 

@@ -6,7 +6,7 @@ shippable learned 3D gaze model (docs/models/view.md, "Face mesh head direction"
 for the paper's appearance network as the view prior v.
 
 Steps (`FaceMeshEstimator.estimate`), all coordinates in image pixel-index coordinates
-(estimators/crops.py):
+(estimators/runtime/crops.py):
 1. the square around the head box, `box_scale` x its longer side, cropped (zeros outside the
    image) to BlazeFace's 128 x 128 input in [-1, 1];
 2. 896 anchors (strides 8, 16, 16, 16), 16 regressors each (box + 6 keypoints: right eye, left
@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FrameError
-from ..frames import check_rgb
-from ..geometry import look_at_rotation, normalize, pixel_ray
-from ..params import param
-from .crops import SquareRoi, apply_affine, box_roi, continuous_to_index, crop, invert_affine
-from .litert import LiteModel, LiteParams, LiteTensor
-from .ssd import decode_detections, sigmoid, ssd_anchors
+from ...errors import FrameError
+from ...frames import check_rgb
+from ...geometry import look_at_rotation, normalize, pixel_ray
+from ...params import param
+from ..runtime.crops import SquareRoi, apply_affine, box_roi, continuous_to_index, crop, invert_affine
+from ..runtime.litert import LiteModel, LiteParams, LiteTensor
+from ..runtime.ssd import decode_detections, sigmoid, ssd_anchors
 
 DETECTOR_SIZE = 128
 DETECTOR_STRIDES = (8, 16, 16, 16)

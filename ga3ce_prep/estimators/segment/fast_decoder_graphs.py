@@ -13,9 +13,9 @@ import numpy as np
 import onnx
 from onnx import TensorProto
 
+from ..runtime.onnx_graph import GraphBuilder
 from .amg import LOW_RES
 from .fast_decoder_weights import C, D, H, P
-from .onnx_graph import GraphBuilder
 
 # The image graph's outputs, in order, and their shapes; the token graph reads all but SC, the mask graph SC
 IMAGE_TENSORS: dict[str, list[int]] = {

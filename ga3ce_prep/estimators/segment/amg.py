@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass, fields
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
-from ..params import param
+from ...errors import ConfigError
+from ...params import param
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,6 +69,10 @@ class AmgOptions:
 
 
 LOW_RES = 256  # side of the decoder's low-resolution mask logits
+# Candidates of one prompt in the generator: the multimask outputs (tokens 1..3), or a single-mask
+# export's one output
+MULTIMASK_TOKENS = (1, 2, 3)
+SINGLE_MASK_TOKENS = (0,)
 
 
 @dataclass(frozen=True)
@@ -237,6 +241,16 @@ def preprocess_shape(h: int, w: int, long_side: int = 1024) -> tuple[int, int]:
     """(newh, neww) of ResizeLongestSide: scale the longest side to `long_side`, round half up."""
     scale = long_side / max(h, w)
     return int(h * scale + 0.5), int(w * scale + 0.5)
+
+
+def transform_coords(points: np.ndarray, orig_hw: tuple[int, int]) -> np.ndarray:
+    """(..., 2) pixel (x, y) in the original image -> the 1024 input frame (ResizeLongestSide.apply_coords)."""
+    h, w = orig_hw
+    newh, neww = preprocess_shape(h, w)
+    out = np.array(points, dtype=np.float64, copy=True)
+    out[..., 0] *= neww / w
+    out[..., 1] *= newh / h
+    return out
 
 
 def upscale_logits(low_res: np.ndarray, orig_hw: tuple[int, int], out_hw: tuple[int, int] | None = None,

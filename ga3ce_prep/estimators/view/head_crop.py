@@ -21,9 +21,9 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from ..errors import FrameError
-from ..frames import check_rgb
-from ..params import param
+from ...errors import FrameError
+from ...frames import check_rgb
+from ...params import param
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

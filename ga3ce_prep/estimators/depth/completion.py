@@ -24,8 +24,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..frames import DepthMap
-from ..params import param
+from ...frames import DepthMap
+from ...params import param
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FrameError
-from ..geometry import back_project, project
-from ..skeleton import HEAD_JOINTS, N_JOINTS
+from ...errors import FrameError
+from ...geometry import back_project, project
+from ...skeleton import HEAD_JOINTS, N_JOINTS
 
 
 def _normalised(image: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -33,8 +33,8 @@ from typing import Literal
 
 import numpy as np
 
-from ..geometry import back_project
-from ..params import param
+from ...geometry import back_project
+from ...params import param
 
 
 @dataclass(frozen=True, kw_only=True)

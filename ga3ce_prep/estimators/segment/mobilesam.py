@@ -35,18 +35,18 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from . import amg
-from .amg_reuse import ReuseStep, SequenceReuse
-from .onnx_runtime import (
+from ...errors import ConfigError, FrameError, ModelFileError
+from ...files import file_sha256
+from ..runtime.onnx_runtime import (
     RuntimeParams,
     TensorSpec,
     check_contract,
     create_session,
-    file_sha256,
     input_dims,
     resolve_providers,
 )
+from . import amg
+from .reuse import ReuseStep, SequenceReuse
 
 IMG_SIZE = 1024
 PIXEL_MEAN = np.array([123.675, 116.28, 103.53], np.float32)   # RGB, 0-255
@@ -66,11 +66,6 @@ DECODER_INPUTS = [
 ]
 DECODER_OUTPUTS = [TensorSpec("masks", ("b", "m", "h", "w")), TensorSpec("iou_predictions", ("b", "m")),
                    TensorSpec("low_res_masks", ("b", "m", 256, 256))]
-# Candidates of one prompt in the generator: the multimask outputs (tokens 1..3), or a single-mask
-# export's one output
-MULTIMASK_TOKENS = (1, 2, 3)
-SINGLE_MASK_TOKENS = (0,)
-
 
 # ---------------------------------------------------------------------------------------------
 # Preprocessing
@@ -88,16 +83,6 @@ def normalise_and_pad(resized: np.ndarray) -> np.ndarray:
     x = (resized.astype(np.float32) - PIXEL_MEAN) / PIXEL_STD
     out = np.zeros((1, 3, IMG_SIZE, IMG_SIZE), np.float32)
     out[0, :, :x.shape[0], :x.shape[1]] = x.transpose(2, 0, 1)
-    return out
-
-
-def transform_coords(points: np.ndarray, orig_hw: tuple[int, int]) -> np.ndarray:
-    """(..., 2) pixel (x, y) in the original image -> the 1024 input frame (ResizeLongestSide.apply_coords)."""
-    h, w = orig_hw
-    newh, neww = amg.preprocess_shape(h, w)
-    out = np.array(points, dtype=np.float64, copy=True)
-    out[..., 0] *= neww / w
-    out[..., 1] *= newh / h
     return out
 
 
@@ -169,7 +154,7 @@ class OfficialDecoder:
         self.batch_size = batch_size
         self._emb: np.ndarray | None = None
         self.masks_per_prompt = self._probe()
-        self.candidate_tokens = MULTIMASK_TOKENS if self.masks_per_prompt == 4 else SINGLE_MASK_TOKENS
+        self.candidate_tokens = amg.MULTIMASK_TOKENS if self.masks_per_prompt == 4 else amg.SINGLE_MASK_TOKENS
 
     def _probe(self) -> int:
         """The masks per prompt (4 or 1), from one prompt on a zero embedding; ModelFileError naming
@@ -250,7 +235,7 @@ class MaskDecoder(Protocol):
 def mask_mode(decoder: MaskDecoder | type) -> Literal["multimask", "single-mask"]:
     """What a decoder gives the generator per grid point: "multimask" (3 candidates, tokens 1..3,
     as segment-anything's generator) or "single-mask" (a single-mask export's one mask)."""
-    return "multimask" if tuple(decoder.candidate_tokens) == MULTIMASK_TOKENS else "single-mask"
+    return "multimask" if tuple(decoder.candidate_tokens) == amg.MULTIMASK_TOKENS else "single-mask"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -271,7 +256,7 @@ class Segmentation:
     n_candidates: the masks decoded (they passed the IoU filter).
     n_mask_prompts: the prompts whose masks were decoded.
     n_prompts: the prompts decoded (the whole grid, fewer on a reuse frame).
-    reuse: what reuse did on this frame (amg_reuse.ReuseStep), None without reuse."""
+    reuse: what reuse did on this frame (reuse.ReuseStep), None without reuse."""
 
     masks: np.ndarray
     scores: np.ndarray
@@ -469,7 +454,7 @@ class MobileSamSegmenter:
         """Segment everything in an (H, W, 3) uint8 RGB image. out_size = (h, w) of the returned masks
         (e.g. the depth map's; default the image's). Filters run at the image resolution, as the
         reference's; the returned masks are the kept candidates' logits resampled to out_size.
-        reuse: the camera sequence's state (amg_reuse.SequenceReuse, `start`ed with this frame's
+        reuse: the camera sequence's state (reuse.SequenceReuse, `start`ed with this frame's
         cues): decode only the prompts whose neighbourhood changed since its key frame (full-image
         crop only). Thread-safe (calls are serialised)."""
         if reuse is not None and self.options.crop_n_layers:
@@ -526,7 +511,7 @@ class MobileSamSegmenter:
             self.decoder.set_image(emb)
         # Get points for this crop
         points = grid * np.array(crop.hw[::-1], np.float64)                       # (n, 2) crop pixels (x, y)
-        coords = transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
+        coords = amg.transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
         # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
         plan = None                                                                # None: every prompt
         if reuse is not None:

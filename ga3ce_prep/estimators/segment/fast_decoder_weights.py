@@ -13,7 +13,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from ..errors import ModelFileError
+from ...errors import ModelFileError
 
 P = 4096      # image tokens (64 x 64)
 C = 256       # embedding width

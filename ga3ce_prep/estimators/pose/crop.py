@@ -27,10 +27,10 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from ..params import param
-from ..skeleton import JOINT_NAMES
-from .crops import LookAtCrop, look_at_crop, warp_homography
+from ...errors import ConfigError, FrameError, ModelFileError
+from ...params import param
+from ...skeleton import JOINT_NAMES
+from ..runtime.crops import LookAtCrop, look_at_crop, warp_homography
 from .placement import pose_depth_translation
 
 # torch 2.13 deprecates TorchScript (NLF's release format and ours); silenced where we call it
@@ -232,7 +232,7 @@ class OnnxCropModel:
     tensor by its role, `image`, `intrinsics`, `poses3d`)."""
 
     def __init__(self, path: Path, providers: Sequence[str], threads: int, dtype: str, resolution: int | None):
-        from .onnx_runtime import TensorSpec, check_contract, create_session, input_dims
+        from ..runtime.onnx_runtime import TensorSpec, check_contract, create_session, input_dims
 
         self.where = f"crop pose ONNX {path}"
         self.sess = create_session(path, providers, threads, "crop pose")

@@ -1,7 +1,7 @@
 """GFIE's head-image gaze network (the EGD module of Hu et al., CVPR 2023; github nkuhzx/GFIE,
 gfiemodel/gfiemodule.py) in torch, loading its weights from GFIE's released checkpoint.
 
-Network (`GFIEHeadNet`): (N, 3, 224, 224) head crop (estimators/head_crop.py, GFIE's recipe) ->
+Network (`GFIEHeadNet`): (N, 3, 224, 224) head crop (estimators/view/head_crop.py, GFIE's recipe) ->
 ResNet-50 without its fc (`backbone`: GFIE keeps torchvision's children but the fc in an
 nn.Sequential, so its keys are indices: 0 conv1, 1 bn1, 4-7 layer1-4) -> flatten (N, 2048) ->
 Linear(2048, 256), ReLU, Linear(256, 3) (`fc`: indices 0 and 2) -> L2-normalised (N, 3).
@@ -12,7 +12,7 @@ and "optimizer". The head network's keys in it are `egd_module.` + ours, e.g.
 `egd_module.backbone.4.0.conv1.weight`, `egd_module.fc.2.bias`: GFIENet names the branch
 `egd_module`, and GFIE never wraps the model in DataParallel (main.py, utils/model_utils.py), so
 there is no `module.` prefix; its inference.py loads the file strictly into a plain GFIENet. The
-other branch with weights, `ggh_module.` (the heatmap generator, estimators/gfie_net.py), is left
+other branch with weights, `ggh_module.` (the heatmap generator, estimators/view/gfie_net.py), is left
 unread; any other key, a missing one or one of another shape refuses the file.
 
 Output convention: GFIE trains the vector against normalize(gaze_XYZ - eye_XYZ), the 3D points
@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import FrameError, ModelFileError
+from ...errors import FrameError, ModelFileError
 from .head_crop import CropParams, head_input
 from .resnet import ResNet50
 

@@ -1,5 +1,5 @@
 """Writing a crop pose model in the files `pose/torchscript` and `pose/onnx` read
-(estimators/crop_pose.py): `<stem>.pt` (TorchScript), `<stem>.onnx` where the model exports, and
+(estimators/pose/crop.py): `<stem>.pt` (TorchScript), `<stem>.onnx` where the model exports, and
 `<stem>.joints.txt`, then checking them with the backends' own loaders.
 
 The model-specific part (importing the user's MeTRAbs or NLF and wrapping its crop model as
@@ -59,7 +59,7 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     (torch.onnx.export, dynamo=False; batch 1 as traced) when `onnx`, and `<stem>.joints.txt` (one
     name per line). Then load them with the pipeline's loaders and compare with the module on
     another crop. A failed ONNX export is reported in `onnx_error`, not raised."""
-    from .crop_pose import TORCHSCRIPT_DEPRECATED, OnnxCropModel, TorchScriptCropModel
+    from .crop import TORCHSCRIPT_DEPRECATED, OnnxCropModel, TorchScriptCropModel
 
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)

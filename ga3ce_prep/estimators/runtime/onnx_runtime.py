@@ -2,14 +2,13 @@
 check of a model file's inputs and outputs against the interface the runner expects."""
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import ConfigError, ModelFileError
-from ..params import param
+from ...errors import ConfigError, ModelFileError
+from ...params import param
 
 if TYPE_CHECKING:  # onnxruntime is imported where a session is made: loading the params stays light
     import onnxruntime as ort
@@ -35,15 +34,6 @@ class RuntimeParams:
         # cpu, cuda (needs onnxruntime-gpu), tensorrt, or full provider names
         "cpu")
     threads: int = param(2, minimum=1)  # intra-op threads per ONNX Runtime session
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file (model provenance)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def resolve_providers(providers: str | Sequence[str] | None) -> list[str]:

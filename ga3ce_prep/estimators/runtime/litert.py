@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ModelFileError
-from ..params import param
+from ...errors import ModelFileError
+from ...params import param
 
 
 @dataclass(frozen=True, kw_only=True)

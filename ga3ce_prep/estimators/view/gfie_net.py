@@ -4,7 +4,7 @@ gfiemodel/gfienet.py, gfiemodel/gfiemodule.py), its inputs as GFIE's test loader
 non-learnable 3D step (`strategy3dGazeFollowing`), in torch and numpy; no GFIE code is copied.
 
 Network (`GFIENet`; the GA3CE paper's "GFM" are its PSFoV and GGH modules):
-- `egd_module` (estimators/gfie_head.py): head crop (N, 3, 224, 224) -> g (N, 3) unit, camera frame;
+- `egd_module` (estimators/view/gfie_head.py): head crop (N, 3, 224, 224) -> g (N, 3) unit, camera frame;
 - PSFoV (`stereo_fov`, no weights): per pixel of the 224 x 224 scene grid F = ReLU(T . g) and
   F' = F^3, with T (N, 224, 224, 3) the unit directions from the eye to the back-projected depth
   (`matrix_t`; GFIE builds T in its data loader) -> (N, 2, 224, 224);
@@ -36,8 +36,8 @@ import torch
 from PIL import Image
 from torch import nn
 
-from ..frames import check_rgb
-from ..geometry import back_project, normalize
+from ...frames import check_rgb
+from ...geometry import back_project, normalize
 from .gfie_head import GFIEHeadNet, load_gfie_weights
 from .head_crop import CropParams, expand_box, network_input
 from .resnet import ResNet50

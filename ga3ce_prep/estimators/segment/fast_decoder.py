@@ -44,6 +44,8 @@ from typing import Literal
 import numpy as np
 import onnxruntime as ort
 
+from ..runtime.onnx_runtime import create_session
+from .amg import MULTIMASK_TOKENS
 from .fast_decoder_graphs import (
     IMAGE_TENSORS,
     STATE,
@@ -55,8 +57,6 @@ from .fast_decoder_graphs import (
 )
 from .fast_decoder_tokens import build_token_graph
 from .fast_decoder_weights import decoder_weights
-from .mobilesam import MULTIMASK_TOKENS
-from .onnx_runtime import create_session
 
 # ONNX Runtime device of each provider the I/O binding path keeps tensors on (others: the host)
 PROVIDER_DEVICE = {"CUDAExecutionProvider": "cuda", "TensorrtExecutionProvider": "cuda"}

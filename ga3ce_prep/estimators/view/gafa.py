@@ -3,10 +3,11 @@ through ONNX Runtime, with its inputs built the way GAFA's preprocessing and loa
 
 Per frame of a window, from the raw frame and its OpenPose BODY_25 keypoints:
 
-- boxes (`preprocessed_boxes`, GAFA's `data/preprocessed/preprocess.py` with `transforms.py`): the
-  min/max of the detected joints (both coordinates non-zero), truncated to integers; head: joints
-  nose, neck, eyes, ears expanded by (top 0.85, bottom -0.2, left 0.1, right 0.1) of its height and
-  width (each pad truncated to an integer), then squared on its longer side; body: all joints,
+- boxes (`preprocessed_boxes`, GAFA's `data/preprocessed/preprocess.py` with `transforms.py`; the
+  rules shared with the gafa adapter, `datasets.gafa.keypoint_squares`): the min/max of the
+  detected joints (both coordinates non-zero), truncated to integers; head: joints nose, neck,
+  eyes, ears expanded by (top 0.85, bottom -0.2, left 0.1, right 0.1) of its height and width
+  (each pad truncated to an integer), then squared on its longer side; body: all joints,
   expanded by (0.15, 0.05, 0.2, 0.2), squared, then narrowed to 3:4 (width 0.75 x side, a float,
   shifted right by floor(side / 8)). Boxes are u, v, w, h full-image pixels;
 - the body crop (`pre_blur`, `body_crop`): the whole frame resized to width 720 and back (bicubic,
@@ -35,10 +36,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..datasets.gafa import WINDOW, _expand, _square
-from ..frames import load_rgb
-from ..skeleton import BODY25_HEAD
-from .onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
+from ...datasets.gafa import WINDOW, keypoint_squares
+from ...frames import load_rgb
+from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 
 CROP_H, CROP_W = 256, 192  # GAFA's body crop, pixels
 BLUR_WIDTH = 720           # GAFA's pre-blur: frames are resized to this width and back before cropping
@@ -49,24 +49,11 @@ INPUTS = [TensorSpec("image", (1, WINDOW, 3, CROP_H, CROP_W)), TensorSpec("head_
 OUTPUTS = [TensorSpec("gaze", (1, WINDOW, 3))]
 
 
-def _joint_box(kp: np.ndarray, joints: slice | tuple[int, ...]) -> np.ndarray:
-    """(T, 4) u, v, w, h from the min/max of each frame's detected joints (both coordinates
-    non-zero), truncated to integers as GAFA's KeypointsToBB does; NaN where none is detected."""
-    uv = np.asarray(kp, np.float64)[:, joints, :2]
-    det = np.all(uv != 0, axis=-1)
-    uv = np.trunc(uv)
-    lo = np.where(det[..., None], uv, np.inf).min(axis=1)
-    hi = np.where(det[..., None], uv, -np.inf).max(axis=1)
-    box = np.concatenate([lo, hi - lo], axis=1)
-    box[~det.any(axis=1)] = np.nan
-    return box
-
-
 def preprocessed_boxes(kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The head and body boxes (T, 4) u, v, w, h float64 full-image pixels that GAFA's preprocessing
     stores for BODY_25 keypoints kp (T, 25, >=2) pixels (0 = undetected); module docstring."""
-    head = _square(_expand(_joint_box(kp, BODY25_HEAD), top=0.85, bottom=-0.2, left=0.1, right=0.1))
-    u, v, side, _ = _square(_expand(_joint_box(kp, slice(None)), top=0.15, bottom=0.05, left=0.2, right=0.2)).T
+    head, body = keypoint_squares(kp)
+    u, v, side, _ = body.T
     diff = side - side * (CROP_W / CROP_H)
     body = np.stack([u + np.floor(diff / 2), v, side - diff, side], axis=1)
     return head, body

@@ -4,7 +4,8 @@ world landmarks with camera-aligned axes.
 
 The steps follow MediaPipe's `pose_detection` and `pose_landmark_by_roi` graphs (read, not
 copied; the conventions are documented at each function). The building blocks are the face
-mesh's: anchors, decoding and NMS in `ssd.py`, ROIs and crops as 2x3 affines in `crops.py`.
+mesh's: anchors, decoding and NMS in `runtime/ssd.py`, ROIs and crops as 2x3 affines in
+`runtime/crops.py`.
 
 1. `detector_input`: the image letterboxed into 224x224 (`crops.letterbox_roi`: aspect kept,
    black bars), RGB in [-1, 1].
@@ -32,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FrameError
-from ..geometry import look_at_rotation, pixel_ray
-from ..params import param
-from .crops import (
+from ...errors import FrameError
+from ...geometry import look_at_rotation, pixel_ray
+from ...params import param
+from ..runtime.crops import (
     SquareRoi,
     apply_affine,
     continuous_to_index,
@@ -45,9 +46,9 @@ from .crops import (
     roi_affine,
     rotation_2d,
 )
-from .litert import LiteModel, LiteParams, LiteTensor
+from ..runtime.litert import LiteModel, LiteParams, LiteTensor
+from ..runtime.ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 from .placement import refine_with_depth, solve_translation
-from .ssd import box_iou, decode_detections, sigmoid, ssd_anchors
 
 LANDMARK_NAMES: tuple[str, ...] = (
     "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye", "right_eye_outer",

@@ -32,11 +32,11 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from ..frames import DepthMap, check_rgb
-from ..params import param
-from ..units import Units, check_plausible, to_metres
-from .onnx_runtime import RuntimeParams, create_session, resolve_providers
+from ...errors import ConfigError, FrameError, ModelFileError
+from ...frames import DepthMap, check_rgb
+from ...params import param
+from ...units import Units, check_plausible, to_metres
+from ..runtime.onnx_runtime import RuntimeParams, create_session, resolve_providers
 
 INTERPOLATION = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -100,7 +100,7 @@ PRESETS: dict[str, MonoDepthOptions] = {
     "depth-anything-v2-metric-indoor": _DEPTH_ANYTHING_V2_METRIC,
     # the same preprocessing; Virtual KITTI 2 weights (max 80 m)
     "depth-anything-v2-metric-outdoor": _DEPTH_ANYTHING_V2_METRIC,
-    # FastDepth (NYU-Depth-v2) as estimators/fastdepth.py describes it: 4:3 crop squashed to
+    # FastDepth (NYU-Depth-v2) as estimators/depth/fastdepth.py describes it: 4:3 crop squashed to
     # 224 x 224, RGB / 255, metres at a 199 px focal length
     "fastdepth": dataclasses.replace(_CUSTOM, size=(224, 224), crop_aspect=(4, 3), interpolation="area",
                                      focal_px=199.0),

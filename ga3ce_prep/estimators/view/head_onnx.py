@@ -1,5 +1,5 @@
 """Any head-crop gaze network exported to ONNX (`view/onnx`): the head crop of `CropParams`
-(GFIE's recipe by default, estimators/head_crop.py), one forward pass, and its 3-vector output
+(GFIE's recipe by default, estimators/view/head_crop.py), one forward pass, and its 3-vector output
 mapped to our camera frame (x right, y down, z forward) by `axes` and normalised.
 
 Contract: one float32 input of shape (1, 3, S, S) ("nchw") or (1, S, S, 3) ("nhwc"), S =
@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, FrameError, ModelFileError
-from ..params import param
+from ...errors import ConfigError, ModelFileError
+from ...geometry import unit_direction
+from ...params import param
+from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 from .head_crop import CropParams, head_input
-from .onnx_runtime import RuntimeParams, TensorSpec, check_contract, create_session, resolve_providers
 
 AXES = ("x", "-x", "y", "-y", "z", "-z")
 
@@ -65,11 +66,8 @@ class HeadOnnxEstimator:
         """v for the head in box (4,) x1, y1, x2, y2 pixels of an (H, W, 3) uint8 RGB image:
         (3,) float32 unit, camera frame. FrameError for a zero or non-finite output."""
         out = self.session.run([self.output], {self.input: head_input(rgb, box, self.p)})[0]
-        v = self.M @ np.asarray(out, np.float64).reshape(3)
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-9:
-            raise FrameError(f"view ONNX {self.path} gave {v.tolist()}, not a direction")
-        return (v / n).astype(np.float32)
+        return unit_direction(self.M @ np.asarray(out, np.float64).reshape(3), f"view ONNX {self.path}'s output",
+                              min_norm=1e-9)
 
 
 __all__ = ["AXES", "HeadOnnxEstimator", "HeadOnnxOptions", "axes_matrix"]

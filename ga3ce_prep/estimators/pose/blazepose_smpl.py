@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import normalize
-from ..skeleton import JOINT_NAMES, N_JOINTS
+from ...geometry import normalize
+from ...skeleton import JOINT_NAMES, N_JOINTS
 from .blazepose import L
 
 # smpl+head_30 joint -> BlazePose landmark, copied as they are.

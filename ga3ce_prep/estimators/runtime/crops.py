@@ -23,7 +23,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..geometry import back_project, look_at_rotation
+from ...geometry import back_project, look_at_rotation
 
 
 @dataclass(frozen=True)
