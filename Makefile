@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -55,6 +55,9 @@ bench-prep: setup
 	$(PY) benchmarks/bench_prep.py
 bench-train: setup
 	$(PY) benchmarks/bench_train.py
+## make bench-objects-value: the paper's GA3CE, ours and no objects on fresh worlds, 3 seeds each (hours).
+bench-objects-value: setup
+	$(PY) benchmarks/objects_value.py --phase report
 bench-objects: setup
 	$(PY) benchmarks/bench_objects.py
 ## make bench-scale: frames/s on 1 and 2 local workers and on dask scheduler + workers; GFIE/GAFA projections.
