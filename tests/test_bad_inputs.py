@@ -387,7 +387,8 @@ def test_a_damaged_cache_entry_is_recomputed_in_the_same_rerun(synth_world, refe
         np.testing.assert_array_equal(open_store(out).frames[name], reference.frames[name], err_msg=name)
 
 
-def test_eval_refuses_a_foreign_checkpoint_and_bad_splits(synth_world, tmp_path, ga3ce):
+def _store_and_run(synth_world, tmp_path):
+    """A store of the synthetic world (tmp_path/s.zarr) and a one-epoch tiny model trained on it."""
     from ga3ce_prep.model import ModelConfig
     from ga3ce_prep.train import TrainConfig, train
 
@@ -396,6 +397,11 @@ def test_eval_refuses_a_foreign_checkpoint_and_bad_splits(synth_world, tmp_path,
     model = ModelConfig(num_encoder_layers=1, num_decoder_layers=1, dim_feedforward=64, head_hidden=64)
     run = train(TrainConfig(store=str(store), out=str(tmp_path / "run"), epochs=1, batch_size=8, warmup_epochs=0,
                             progress=False, model=model))
+    return store, run
+
+
+def test_eval_refuses_a_foreign_checkpoint_and_bad_splits(synth_world, tmp_path, ga3ce):
+    store, run = _store_and_run(synth_world, tmp_path)
     ckpt = torch.load(run / "best.pt", weights_only=True)
     ckpt["config"]["model"].update(joint_width=8, view_width=136)       # another configuration's d_model split
     torch.save(ckpt, tmp_path / "other.pt")
@@ -454,15 +460,9 @@ def test_the_installed_entry_point_prints_one_line_and_exits_2(synth_gafa_world,
 
 def test_every_reader_refuses_a_damaged_store_whatever_force_says(synth_world, tmp_path, ga3ce):
     from ga3ce_prep.errors import StoreError
-    from ga3ce_prep.model import ModelConfig
-    from ga3ce_prep.train import TrainConfig, train
     from ga3ce_prep.train.dataset import ContextDataset
 
-    store = tmp_path / "s.zarr"
-    run_pipeline("synthetic", synth_world, store, overrides=RUN, progress=False)
-    model = ModelConfig(num_encoder_layers=1, num_decoder_layers=1, dim_feedforward=64, head_hidden=64)
-    run = train(TrainConfig(store=str(store), out=str(tmp_path / "run"), epochs=1, batch_size=8, warmup_epochs=0,
-                            progress=False, model=model))
+    store, run = _store_and_run(synth_world, tmp_path)
     fid = open_store(store).frames["id"][0]
     (store / "frames" / "head_pos" / "c" / "0" / "0").unlink()           # one chunk deleted
     damaged = f"error: {store} is damaged: array frames/head_pos, chunk (0, 0) (rows 0-11): missing"
