@@ -14,7 +14,7 @@ designs are compared); `--phase report` on the test split of the `report` worlds
 drawn after the design was frozen and never used to choose it:
 
   choose worlds: seeds 101-103 (designs are compared on these, validation split only)
-  report worlds: seeds 7001-7004 (the table the docs quote)
+  report worlds: seeds 7001-7004 (the table docs/studies/2026-12-01-objects-value.md quotes)
 
 Usage:
   python benchmarks/objects_value.py --phase report [--worlds small,medium,other,large] [--pipeline P]
