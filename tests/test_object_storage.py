@@ -111,10 +111,10 @@ def test_the_lease_refuses_a_live_run_elsewhere_and_takes_over_a_dead_one(s3, tm
     import fsspec
 
     fs = fsspec.filesystem("s3")
-    work = "s3://bkt/leased.work"
-    with RunLock(work, "x"):
-        with pytest.raises(StoreError, match="another ga3ce-prep run is writing x"):
-            RunLock(work, "x").__enter__()  # this machine's flock
+    work, out = "s3://bkt/leased.work", str(tmp_path / "x")   # out's local lock file: out + ".lock"
+    with RunLock(work, out):
+        with pytest.raises(StoreError, match="another ga3ce-prep run is writing .*x"):
+            RunLock(work, out).__enter__()  # this machine's flock
     assert not fs.exists(f"{work}/lock")
 
     def lease(**record):
@@ -122,9 +122,9 @@ def test_the_lease_refuses_a_live_run_elsewhere_and_takes_over_a_dead_one(s3, tm
 
     lease(heartbeat=time.time())  # a live run on another machine
     with pytest.raises(StoreError, match=r"pid 1 on elsewhere.*last heard of \d+ s ago"):
-        RunLock(work, "x").__enter__()
+        RunLock(work, out).__enter__()
     lease(heartbeat=time.time() - LEASE_S - 1)  # its run died
-    with RunLock(work, "x"):
+    with RunLock(work, out):
         assert json.loads(fs.cat_file(f"{work}/lock"))["pid"] == os.getpid()
 
 
