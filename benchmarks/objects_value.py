@@ -32,7 +32,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ga3ce_prep.model import GA3CE, ModelConfig
+from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.train import TrainConfig, evaluate, train
 from ga3ce_prep.train.trainer import reuse_g0, run_done
 
@@ -168,7 +168,7 @@ def main(out: str, phase: str, worlds: str | None, pipeline: str, epochs: int, o
         maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
         for key, (folder, model) in models.items():
             click.echo(f"{name}: {key} ({folder}), seeds {list(SEEDS)}")
-            if GA3CE(model).g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
+            if model.g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
                 for k in SEEDS:
                     reuse_g0(runs / folder / f"seed{k}", runs / "no-objects" / f"seed{k}", epochs)
             got = [run_model(store, runs / folder / f"seed{k}", model, k, split, epochs, world.train_frames)

@@ -115,6 +115,11 @@ class ModelConfig:
             raise ValueError(f"E_subject width {self.view_width} + {len(GA3CE_JOINTS)} x "
                              f"{self.joint_width} = {subject} must equal d_model {self.d_model}")
 
+    @property
+    def g0_frozen(self) -> bool:
+        """Whether g0's network is the no-objects model, trained first and frozen (pointer_g0)."""
+        return self.use_context and self.use_objects and self.output == "pointer" and self.pointer_g0 == "frozen"
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["head_width_pair"] = list(self.head_width_pair)
@@ -167,13 +172,8 @@ class GA3CE(nn.Module):
 
     @property
     def g0_frozen(self) -> bool:
-        """Whether g0's network is the no-objects model, trained first and frozen (pointer_g0)."""
-        c = self.config
-        return c.use_context and c.use_objects and c.output == "pointer" and c.pointer_g0 == "frozen"
-
-    def g0_state_dict_keys(self) -> list[str]:
-        """The weights of g0's network: every weight but the pointer's."""
-        return [k for k in self.state_dict() if not k.startswith("pointer.")]
+        """ModelConfig.g0_frozen of this model's config."""
+        return self.config.g0_frozen
 
     def train(self, mode: bool = True) -> GA3CE:
         """nn.Module.train; a frozen g0 network stays in eval mode (no dropout: g0 is the no-objects

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..model import GA3CE, METHODS, model_label
+from ..model import METHODS, model_label
 from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
@@ -96,7 +96,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             run = out / name / f"seed{seed}"
             cfg = dataclasses.replace(base, out=str(run), seed=seed,
                                       model=dataclasses.replace(base.model, **ab.overrides))
-            if GA3CE(cfg.model).g0_frozen and not force:   # its g0 stage is the no-objects row, weight for weight
+            if cfg.model.g0_frozen and not force:   # its g0 stage is the no-objects row, weight for weight
                 reuse_g0(run, out / "no-objects" / f"seed{seed}", cfg.epochs)
             if force or not run_done(run, cfg.epochs):
                 log.info("ablation %s, seed %d: training into %s", name, seed, run)
