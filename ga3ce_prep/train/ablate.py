@@ -174,7 +174,7 @@ def format_ablation_table(summary: dict[str, Any]) -> str:
     out += _table_lines(rows, summary, "table5", ("Ego.", "Cyc.", "D3"))
     ours = [(a, rows[a.name]) for a in ABLATIONS if a.table4 is None and a.table5 is None and a.name in rows]
     if ours:
-        out += ["", "The other named models, same recipe (ga3ce-prep train --model; docs/training.md \"Ours\")"]
+        out += ["", "The other named models, same recipe (ga3ce-prep train --model; docs/training.md \"The output\")"]
         out += [f"{r['label']:30s} {'':17s} | {'':16s} | {_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}"
                 for a, r in ours]
     out.append("")
