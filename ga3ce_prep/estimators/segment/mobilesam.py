@@ -273,14 +273,18 @@ class Segmentation:
 
 
 class StepTimer:
-    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`."""
+    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`; a step
+    None is not timed."""
 
     def __init__(self):
         self.seconds: dict[str, float] = defaultdict(float)
         self._lock = threading.Lock()
 
     @contextmanager
-    def __call__(self, step: str) -> Iterator[None]:
+    def __call__(self, step: str | None) -> Iterator[None]:
+        if step is None:
+            yield
+            return
         t0 = time.perf_counter()
         try:
             yield
