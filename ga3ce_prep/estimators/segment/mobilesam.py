@@ -17,7 +17,8 @@ Tensors are found by role: by name, else by shape (onnx_runtime.check_contract).
 restructured decoder of fast_decoder.py (`decoder_mode="fast"`, default; multimask from the file's
 weights, whichever way the file was exported) or the official graph (`decoder_mode="official"`, one
 call per prompt unless its batch axis is dynamic; the masks the file exports per prompt); both are a
-`MaskDecoder`.
+`MaskDecoder`. Each crop's steps run through a `CropPlan`: the exact generator's `EXACT` (every
+prompt), or reuse.SequenceReuse (reuse across the frames of a static camera).
 """
 from __future__ import annotations
 
@@ -273,14 +274,18 @@ class Segmentation:
 
 
 class StepTimer:
-    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`."""
+    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`; a step
+    None is not timed."""
 
     def __init__(self):
         self.seconds: dict[str, float] = defaultdict(float)
         self._lock = threading.Lock()
 
     @contextmanager
-    def __call__(self, step: str) -> Iterator[None]:
+    def __call__(self, step: str | None) -> Iterator[None]:
+        if step is None:
+            yield
+            return
         t0 = time.perf_counter()
         try:
             yield
@@ -332,6 +337,49 @@ class _Crop:
         out = np.zeros(out_hw, bool)
         out[y0:y1, x0:x1] = amg.upscale_logits(low_res[None], self.hw, (y1 - y0, x1 - x0))[0] > 0.0
         return out
+
+
+class CropPlan(Protocol):
+    """A layer around the generator's steps on one crop (`MobileSamSegmenter._process_crop`), called
+    in this order: `plan` the grid prompts to decode, decode them with the filters' thresholds
+    lowered by `margin`, `merge` their candidates with the layer's own, NMS, `settle` the winners.
+    The exact generator's `EXACT` decodes every prompt and adds nothing; reuse.SequenceReuse reuses
+    a key frame's candidates (full-image crop only)."""
+
+    step: str | None  # StepTimer step of plan and merge (None: not timed)
+
+    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
+        """embedding (1, 256, 64, 64), the grid's prompts coords (n, 2) in the 1024 frame -> (n,)
+        bool prompts to decode, None for all."""
+
+    @property
+    def margin(self) -> float:
+        """Lower the IoU and stability thresholds by this when decoding the planned prompts."""
+
+    def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
+        """The planned prompts' candidates, in prompt order -> the crop's candidates before NMS."""
+
+    def settle(self, keep: np.ndarray) -> None:
+        """keep: the rows of `merge`'s result that won the crop's NMS, in NMS order."""
+
+
+class _Exact:
+    """The exact generator's CropPlan: every prompt, the filters' own thresholds, nothing merged."""
+
+    step = None
+    margin = 0.0
+
+    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> None:
+        return None
+
+    def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
+        return decoded
+
+    def settle(self, keep: np.ndarray) -> None:
+        pass
+
+
+EXACT: CropPlan = _Exact()
 
 
 def single_point_prompts(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -473,7 +521,8 @@ class MobileSamSegmenter:
         boxes, layers = amg.crop_boxes(img_hw, opt.crop_n_layers, opt.crop_overlap_ratio)
         crops = [_Crop(i, tuple(box), layer, img_hw) for i, (box, layer) in enumerate(zip(boxes, layers))]
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
-        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer, reuse) for crop in crops]
+        layer = EXACT if reuse is None else reuse
+        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer, layer) for crop in crops]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
         counts = sum((n for _, n in parts), _Counts())
         crop_boxes = np.array(boxes, np.int64)                                      # (crops, 4)
@@ -499,10 +548,10 @@ class MobileSamSegmenter:
                             n_prompts=counts.prompts, reuse=None if reuse is None else reuse.last)
 
     def _process_crop(self, rgb: np.ndarray, crop: _Crop, grid: np.ndarray, timer: StepTimer,
-                      reuse: SequenceReuse | None = None) -> tuple[amg.MaskRecords, _Counts]:
-        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches (with reuse: the prompts
-        it plans, merged with the key frame's candidates of the others), in-crop NMS. Boxes and
-        points come back in image coordinates."""
+                      layer: CropPlan = EXACT) -> tuple[amg.MaskRecords, _Counts]:
+        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches, in-crop NMS. Boxes and
+        points come back in image coordinates. `layer` plans the prompts to decode and merges their
+        candidates with its own before NMS (CropPlan; EXACT: every prompt, nothing merged)."""
         x0, y0, x1, y1 = crop.box
         # Crop the image and calculate embeddings
         with timer("encoder"):
@@ -512,32 +561,26 @@ class MobileSamSegmenter:
         # Get points for this crop
         points = grid * np.array(crop.hw[::-1], np.float64)                       # (n, 2) crop pixels (x, y)
         coords = amg.transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
-        # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
-        plan = None                                                                # None: every prompt
-        if reuse is not None:
-            with timer("reuse"):
-                plan = reuse.plan(emb, coords)
+        with timer(layer.step):
+            plan = layer.plan(emb, coords)                                         # None: every prompt
         prompts = np.arange(len(points)) if plan is None else np.flatnonzero(plan)
+        margin = layer.margin
+        # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
         step = self.decoder.batch_size or max(1, len(prompts))  # None: all at once; results do not depend on it
         batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
-
-        # A reuse key frame also keeps the candidates within the reuse margin below the filters' thresholds
-        margin = reuse.p.reuse_score_margin if reuse is not None and plan is None else 0.0
 
         def decode(b: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
             return self._decode_batch(coords[b], points[b], crop, timer, b, margin)
 
         parts = list(self._pool.map(decode, batches)) if self._pool else [decode(b) for b in batches]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
-        if reuse is not None:
-            with timer("reuse"):
-                data = reuse.merge(data, plan, emb, self.options)
+        with timer(layer.step):
+            data = layer.merge(data, self.options)
         # Remove duplicates within this crop
         with timer("nms"):
             keep = amg.box_nms(data.box, data.iou, self.options.box_nms_thresh)
             data = data.filter(keep)
-        if reuse is not None:
-            reuse.settle(keep)
+        layer.settle(keep)
         # Return to the original image frame
         shift = np.array([x0, y0])
         data = replace(data, box=data.box + np.tile(shift, 2), point=data.point + shift)
@@ -549,7 +592,7 @@ class MobileSamSegmenter:
         prompts (B,) their indices in the crop's grid:
         predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
         resolution (the reference's `_process_batch`, IoU filter first). margin: lower the IoU and
-        stability thresholds by this (a reuse key frame's near misses; 0 for the exact generator)."""
+        stability thresholds by this (the crop plan's, CropPlan.margin; 0 for the exact generator)."""
         opt = self.options
         tokens = np.asarray(self.decoder.candidate_tokens)                        # (k,): 1..3, or the one mask
         k = tokens.size

@@ -173,8 +173,11 @@ def dilate(cells: np.ndarray, r: int) -> np.ndarray:
 
 class SequenceReuse:
     """One camera sequence's key frame and the rule of what to decode again (module docstring).
-    Use per frame: `start(cues)`, then the generator calls `plan`, `merge` and `settle`; `last`
-    tells what was done. Not thread-safe: one sequence, one thread."""
+    Use per frame: `start(cues)`, then `MobileSamSegmenter.segment(rgb, reuse=...)`: it is the
+    generator's crop plan (mobilesam.CropPlan: `plan`, `margin`, `merge`, `settle`); `last` tells
+    what was done. Not thread-safe: one sequence, one thread."""
+
+    step = "reuse"   # the generator's timer step of plan and merge
 
     def __init__(self, params: ReuseParams):
         self.p = params
@@ -185,6 +188,8 @@ class SequenceReuse:
         self.last: ReuseStep | None = None
         self._person: np.ndarray | None = None
         self._changed: np.ndarray | None = None
+        self._plan: np.ndarray | None = None       # this frame's plan and embedding, for merge
+        self._embedding: np.ndarray | None = None
 
     def start(self, cues: FrameCues) -> None:
         """The frame about to be segmented."""
@@ -220,15 +225,21 @@ class SequenceReuse:
             if decode.mean() > self.p.reuse_max_changed:
                 reason, decode = "changed", None
         self.last = ReuseStep(decode is None, reason, 1.0 if decode is None else float(decode.mean()))
+        self._plan, self._embedding = decode, embedding
         return decode
 
-    def merge(self, decoded: amg.MaskRecords, plan: np.ndarray | None, embedding: np.ndarray,
-              options: amg.AmgOptions) -> amg.MaskRecords:
+    @property
+    def margin(self) -> float:
+        """How far below the filters' thresholds the generator decodes: `reuse_score_margin` on a key
+        frame (its near misses), 0 on a reuse frame."""
+        return self.p.reuse_score_margin if self._plan is None else 0.0
+
+    def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
         """The frame's candidates before NMS: on a key frame those of `decoded` that pass the
-        generator's filters (`options`; the generator decoded it with the thresholds lowered by
-        `reuse_score_margin`), kept as the new key with the near misses; else the key's candidates of
-        the prompts not decoded plus `decoded`, in prompt order."""
-        c = self.cues
+        generator's filters (`options`; decoded at `margin`), kept as the new key with the near
+        misses; else the key's candidates of the prompts not decoded plus `decoded`, in prompt order."""
+        c, plan, embedding = self.cues, self._plan, self._embedding
+        self._embedding = None
         if plan is None:
             m = self.p.reuse_score_margin
             passes = options.iou_passes(decoded.iou) & options.stability_passes(decoded.stability)
