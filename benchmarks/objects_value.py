@@ -115,15 +115,16 @@ def same_but_objects(a: Path, b: Path) -> bool:
         np.array_equal(x.frames[k], y.frames[k], equal_nan=x.frames[k].dtype.kind == "f") for k in keys)
 
 
-def no_objects_runs(root: Path, runs: Path, store: Path) -> Path:
-    """The folder of the no-objects runs for `store`: the geometric store's (root/runs/no-objects)
-    when it exists and differs from `store` in the objects only, else runs/no-objects."""
+def no_objects_runs(root: Path, runs: Path, store: Path) -> tuple[Path, bool]:
+    """The folder of the no-objects runs for `store`, and whether it is another store's: the
+    geometric store's (root/runs/no-objects) when it exists and differs from `store` in the objects
+    only, else runs/no-objects."""
     base = root / "runs" / "no-objects"
     geometric = root / f"{SEGMENTERS['geometric'][0]}.zarr"
     if runs != root / "runs" and (geometric / "zarr.json").exists() and same_but_objects(geometric, store):
         click.echo(f"no objects: the same model as on the geometric store ({base})")
-        return base
-    return runs / "no-objects"
+        return base, True
+    return runs / "no-objects", False
 
 
 def paired(a: list[float], b: list[float]) -> tuple[float, float]:
@@ -189,8 +190,8 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
               "(synthetic-minisam, reuse: sequence; about 3 s a frame on 2 cores: the objects-quality study).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--paper-seeds", default=len(SEEDS), show_default=True, type=click.IntRange(0, len(SEEDS)),
-              help="Train the paper's GA3CE on the first N seeds only (it trains about five times slower per "
-              "epoch than the model without objects, and ours reuses that model); 0: not at all.")
+              help="Train the paper's GA3CE on the first N seeds only (the slowest of the three to train: it "
+              "attends over the objects, and ours reuses the model without objects); 0: not at all.")
 @click.option("--model-set", "ours_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a ModelConfig field of ours: a design under study (--phase choose); its runs get "
               "their own folder.")
@@ -205,14 +206,14 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
               "ours": ("ours" + variant, ModelConfig.for_method("ours", **_model_sets(ours_sets)))}
     if phase == "report" and paper_seeds:   # choosing compares designs of ours with no objects
         models["paper"] = ("paper", ModelConfig.for_method("ga3ce"))
+    pipeline = SEGMENTERS[segmenter][0]
     rows = {}
     for name in names:
         world = WORLDS[phase][name]
         root = Path(out) / f"{phase}-{name}"
         store = prepare(root, world, segmenter)
-        pipeline = SEGMENTERS[segmenter][0]
         runs = root / ("runs" if pipeline == "synthetic" else f"runs-{pipeline}")
-        bare = no_objects_runs(root, runs, store)
+        bare, shared = no_objects_runs(root, runs, store)
         maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
         for key, (folder, model) in models.items():
             seeds = SEEDS[:paper_seeds] if key == "paper" else SEEDS
@@ -222,7 +223,7 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
                     reuse_g0(runs / folder / f"seed{k}", bare / f"seed{k}", epochs)
             folder_runs = bare if key == "no_objects" else runs / folder
             got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames,
-                             other_store=folder_runs == bare and bare != runs / "no-objects") for k in seeds]
+                             other_store=shared and key == "no_objects") for k in seeds]
             maes[key] = [m for m, _ in got] + [math.nan] * (len(SEEDS) - len(seeds))
             prior = got[0][1]
         rows[name] = world_row(maes, prior)
@@ -230,7 +231,6 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
     table = format_table(rows, split)
     click.echo("\n" + table)
     Path(out).mkdir(parents=True, exist_ok=True)
-    pipeline = SEGMENTERS[segmenter][0]
     suffix = ("" if pipeline == "synthetic" else "_" + pipeline) + variant
     path = Path(out) / f"objects_value_{phase}{suffix}.json"
     path.write_text(json.dumps({"phase": phase, "split": split, "segmenter": segmenter, "pipeline": pipeline,
