@@ -37,9 +37,10 @@ test-models: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
-## make test: set up, lint, then run the test suite.
+## make test: set up, lint, then run the test suite on TEST_WORKERS processes (pytest-xdist; 0: one).
+TEST_WORKERS ?= 2
 test: setup models test-models lint
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 ## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr] [MODELS=dir of your model files]
 prep: setup

@@ -246,7 +246,8 @@ def test_io_binding_is_chosen_by_the_provider():
 def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
     """The I/O binding path (all prompts of the crop in one token-graph call, the state bound as
     OrtValues into the mask graph, here in chunks of 7 prompts) on CPU keeps the plain path's
-    candidates, scores, stability scores, boxes and masks exactly: same graphs, same arithmetic."""
+    candidates, scores, stability scores, boxes and masks: same graphs, the same arithmetic but for
+    the batch shapes, whose kernels may sum in another order (float noise, CPU-dependent)."""
     rgb = drawn_frame()
     opt = SegmenterOptions(points_per_side=5, pred_iou_thresh=0.0, stability_score_thresh=0.3,
                            stability_score_offset=0.05, box_nms_thresh=1.0, io_binding="off")
@@ -262,7 +263,9 @@ def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
     assert a.n_candidates == b.n_candidates == 75 and 5 < len(a.masks) < 75
     np.testing.assert_array_equal(b.points, a.points)
     np.testing.assert_allclose(b.scores, a.scores, atol=1e-6)
-    np.testing.assert_allclose(b.stability, a.stability, atol=1e-6)
+    # a stability score counts the pixels of a mask's logits above +offset over those above -offset:
+    # one pixel within float noise of either flips it by about 1 / area (1.3e-6 seen on one CPU)
+    np.testing.assert_allclose(b.stability, a.stability, atol=2e-5)
     np.testing.assert_array_equal(b.boxes, a.boxes)
     diff = (a.masks != b.masks).reshape(len(a.masks), -1).sum(axis=1)
     assert diff.max() <= 20                                      # logits within float noise of 0 at most
