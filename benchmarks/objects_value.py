@@ -86,9 +86,13 @@ WORLDS = {
 
 
 def prepare(root: Path, world: World, segmenter: str) -> Path:
-    """The world's dataset and its store by `segmenter` under root (cached); returns the store."""
+    """The world's dataset and its store by `segmenter` under root (cached); returns the store. A
+    finished store is enough: the world is made only to make a missing store (so stores copied to
+    another machine train there without the world's images)."""
     pipeline, overrides, per_sequence = SEGMENTERS[segmenter]
     data, store = root / "data", root / f"{pipeline}.zarr"
+    if (store / "zarr.json").exists():
+        return store
     if not (data / "truth.h5").exists():
         cmd = [*CLI, "synth", "--format", "gfie", "--out", str(data), "--scenes", str(world.scenes),
                "--frames-per-scene", str(world.frames_per_scene), "--seed", str(world.seed), "--quiet"]
@@ -98,10 +102,9 @@ def prepare(root: Path, world: World, segmenter: str) -> Path:
             knobs.write_text(OTHER_KNOBS)
             cmd += ["--config", str(knobs)]
         run_locked(cmd)
-    if not (store / "zarr.json").exists():
-        shards = ["--shard-size", str(world.frames_per_scene), "--work", str(root / "work")] if per_sequence else []
-        run_locked([*CLI, "run", "--pipeline", pipeline, "--data", str(data), "--out", str(store), "--quiet",
-                    *shards, *(a for o in overrides for a in ("--set", o))])
+    shards = ["--shard-size", str(world.frames_per_scene), "--work", str(root / "work")] if per_sequence else []
+    run_locked([*CLI, "run", "--pipeline", pipeline, "--data", str(data), "--out", str(store), "--quiet",
+                *shards, *(a for o in overrides for a in ("--set", o))])
     return store
 
 
