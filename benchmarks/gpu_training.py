@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -49,8 +50,6 @@ def last_epoch_rate(run_dir: Path) -> float:
 @click.option("--timing-epochs", default=2, show_default=True, help="Epochs of each timing run.")
 @click.option("--cpu-threads", default="2,16", show_default=True, help="CPU thread counts to time against the GPU.")
 def main(store: str, out: str, epochs: int, timing_epochs: int, cpu_threads: str) -> None:
-    import os
-
     import torch
 
     if not torch.cuda.is_available():
@@ -76,13 +75,14 @@ def main(store: str, out: str, epochs: int, timing_epochs: int, cpu_threads: str
         result["models"][model] = {"train_seconds": secs, "test_mae3d": mae}
         click.echo(f"{model}: trained on cuda in {secs:.1f} s; test 3D MAE {mae['cuda']:.4f} (eval on cuda), "
                    f"{mae['cpu']:.4f} (same checkpoint on the CPU)")
-    for device, threads in [("cuda", None)] + [("cpu", int(t)) for t in cpu_threads.split(",")]:
+    counts = [int(t) for t in cpu_threads.split(",")]
+    for device, threads in [("cuda", None)] + [("cpu", t) for t in counts]:
         name = f"timing-{device}" + (f"{threads}" if threads else "")
         cmd = CLI + ["train", "--store", store, "--out", str(root / name), "--device", device, "--epochs",
                      str(timing_epochs), "--seed", "0", "--no-progress", "--force"]
         secs = run(cmd + (["--threads", str(threads)] if threads else []), root / f"{name}.log")
         result["timing"][name] = {"seconds": secs, "samples_per_s": last_epoch_rate(root / name)}
-    base = result["timing"][f"timing-cpu{cpu_threads.split(',')[0]}"]["samples_per_s"]
+    base = result["timing"][f"timing-cpu{counts[0]}"]["samples_per_s"]
     click.echo(f"the paper's GA3CE, epoch {timing_epochs} of {timing_epochs}, samples/s (x the first CPU count):")
     for name, t in result["timing"].items():
         click.echo(f"  {name:14s} {t['samples_per_s']:7.1f}  ({t['samples_per_s'] / base:.2f}x)   "
