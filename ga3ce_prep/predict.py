@@ -22,7 +22,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,9 @@ from .frames import DepthMap, FrameRef
 from .skeleton import N_JOINTS
 from .stages import DROPS_FRAME, call_backend, dependency_order
 from .stages.base import FrameObjects, Sourced
+
+if TYPE_CHECKING:
+    from .pipeline.config import PipelineConfig
 
 DEFAULT_PIPELINE = "folder-real"
 DEFAULT_FOV = 60.0  # degrees, horizontal: an ordinary webcam or phone camera, when K is unknown
@@ -150,7 +153,7 @@ class Predictor:
             self.model = build_model(ckpt)
             self.model_name = model_label(ModelConfig.from_dict(ckpt["config"]["model"]))
 
-    def config(self, has_depth: bool):
+    def config(self, has_depth: bool) -> PipelineConfig:
         """The pipeline as this predictor runs it: FastDepth in place of a sensor when the frame has
         no depth file, and the objects as the class says."""
         from .params import load_yaml
