@@ -1,6 +1,6 @@
 """The store commands `info`, `show`, `export` (registered in ga3ce_prep/cli.py), and `info`'s text:
-what a store holds (splits, scenes, frames, object-count histogram, ground truth present,
-provenance, failures, integrity record)."""
+what a store holds (splits, scenes, frames, the synthetic world's protocol, object-count
+histogram, ground truth present, provenance, failures, integrity record)."""
 from __future__ import annotations
 
 import json
@@ -28,6 +28,11 @@ def describe_store(s: ContextStore, max_failures: int = 8) -> str:
     ds = a.get("dataset", {})
     pl = a.get("pipeline", {})
     lines.append(f"dataset      {ds.get('name')} at {ds.get('root')}")
+    world = ds.get("synthetic")
+    if world:
+        preset = f", preset {world['preset']}" if world.get("preset") else ""
+        lines.append(f"synthetic    {world.get('protocol')} ({world.get('rooms')} rooms, seed "
+                     f"{world.get('seed')}{preset})")
     lines.append(f"pipeline     {pl.get('name', '')} ({pl.get('file')}, sha256 {str(pl.get('sha256', ''))[:12]})")
     summ = a.get("summary", {})
     total = summ.get("frames_total", summ.get("frames_in_dataset", n))  # 1.0 stores: the old name

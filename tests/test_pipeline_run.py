@@ -67,6 +67,9 @@ def test_store_contents_and_provenance(synth_world, reference):
     assert st["view"]["params"]["mean_error_deg"] == 20.0
     assert st["objects"]["params"]["stride"] == 1
     assert s.attrs["dataset"]["name"] == "gfie"
+    world = s.attrs["dataset"]["synthetic"]  # the truth.h5 at the root: how the world was made
+    assert world["protocol"] == "unseen-rooms: one session per room, split by room"
+    assert (world["sessions_per_room"], world["rooms"], world["seed"]) == (1, 3, 5)
     assert len(s.attrs["pipeline"]["sha256"]) == 64
     assert s.attrs["summary"]["frames_kept"] == 12
     text = summary.format()
@@ -278,6 +281,7 @@ def test_info_show_export_commands(synth_world, reference, tmp_path):
     assert "frames       12" in res.output
     assert "splits" in res.output
     assert "[ORACLE" in res.output
+    assert "synthetic    unseen-rooms: one session per room, split by room (3 rooms, seed 5)" in res.output
     fid = open_store(out).frames["id"][0]
     png = tmp_path / "f.png"
     res = r.invoke(cli, ["show", str(out), fid, "--out", str(png)])

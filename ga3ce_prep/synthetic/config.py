@@ -4,12 +4,15 @@ Every field is documented in docs/synthetic.md. Ranges are `(low, high)` tuples 
 unless said otherwise; lengths in metres, angles in degrees (knobs are read by people), times in
 seconds. `SynthConfig.for_format(fmt)` gives the defaults of one dataset format (GFIE, CAD-120 and
 GAFA differ in target mix, postures, frame rate and camera count); `load_config(fmt, yaml_path)`
-applies a YAML override file on top, section by section.
+applies a YAML override file on top, section by section. A named preset (`presets/<name>.yaml`
+in this package: `load_preset`) fixes a format, a seed offset and config sections, applied
+between the format's defaults and the YAML file.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -246,10 +249,53 @@ def validate(cfg: SynthConfig) -> SynthConfig:
     return cfg
 
 
-def load_config(fmt: str, path: str | Path | None = None, overrides: dict | None = None) -> SynthConfig:
-    """The format's defaults, overridden by the YAML file at `path` (sections as in SynthConfig),
-    then by the mapping `overrides` (same layout; used by tests and scripts)."""
+@dataclass(frozen=True)
+class Preset:
+    """A named world (`presets/<name>.yaml`): its format, the offset added to the master seed (so
+    its rooms are not those of a world of the same seed), a one-line description, and config
+    sections applied on top of the format's defaults."""
+
+    name: str
+    format: str
+    seed_offset: int
+    description: str
+    sections: dict[str, Any]
+
+
+PRESET_KEYS = ("format", "seed_offset", "description")
+
+
+def preset_names() -> list[str]:
+    """Names of the presets shipped in ga3ce_prep/synthetic/presets/, sorted."""
+    folder = resources.files(__package__) / "presets"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def load_preset(name: str) -> Preset:
+    """The preset `name`; ConfigError naming the known presets, or the bad key, otherwise."""
+    names = preset_names()
+    if name not in names:
+        raise ConfigError(f"unknown synthetic preset {name!r}; known presets: {', '.join(names)}")
+    where = f"preset {name}"
+    data = load_yaml((resources.files(__package__) / "presets" / f"{name}.yaml").read_text()) or {}
+    if data.get("format") not in FORMATS:
+        raise ConfigError(f"{where}.format: {data.get('format')!r} is not one of {', '.join(FORMATS)}")
+    sections = {k: v for k, v in data.items() if k not in PRESET_KEYS}
+    _merge(SynthConfig.for_format(data["format"]), sections, where)  # unknown keys are refused here
+    return Preset(name, data["format"], int(data.get("seed_offset", 0)), str(data.get("description", "")), sections)
+
+
+def load_config(fmt: str, path: str | Path | None = None, overrides: dict | None = None,
+                preset: str | None = None) -> SynthConfig:
+    """The format's defaults, overridden by the preset's sections (`load_preset`; its format must
+    be `fmt`), then by the YAML file at `path` (sections as in SynthConfig), then by the mapping
+    `overrides` (same layout; used by tests and scripts)."""
     cfg = SynthConfig.for_format(fmt)
+    if preset is not None:
+        pr = load_preset(preset)
+        if pr.format != fmt:
+            raise ConfigError(f"preset {preset} writes the {pr.format} format, not {fmt}")
+        _merge(cfg, pr.sections, f"preset {preset}")
     if path is not None:
         path = Path(path)
         if not path.is_file():

@@ -81,3 +81,19 @@ def object_snap(truth: TruthReader, view_error_deg: float = 20.0, max_snap_deg: 
     return {"v_error_deg": float(ev.mean()), "snap_error_deg": float(es.mean()),
             "v_error_object_targets_deg": float(ev[is_obj].mean()) if is_obj.any() else float("nan"),
             "snap_error_object_targets_deg": float(es[is_obj].mean()) if is_obj.any() else float("nan")}
+
+
+def split_recordings(truth: TruthReader) -> dict[str, dict[str, int]]:
+    """Per split ("train", "val", "test", those present): sessions (distinct room, session pairs),
+    rooms, and rooms that also have a training session (all of them under the seen-rooms
+    protocol, none under unseen-rooms)."""
+    room, session, split = truth.room.astype(np.int64), truth.session.astype(np.int64), truth.split
+    train_rooms = set(room[split == "train"].tolist())
+    out = {}
+    for name in ("train", "val", "test"):
+        m = split == name
+        if m.any():
+            rooms = set(room[m].tolist())
+            out[name] = {"sessions": len(set(zip(room[m].tolist(), session[m].tolist()))), "rooms": len(rooms),
+                         "rooms_seen_in_training": len(rooms & train_rooms)}
+    return out

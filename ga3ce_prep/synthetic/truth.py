@@ -4,8 +4,9 @@ dataset adapters' frame ids, read by the pipeline's `oracle` backends through `T
 Layout (N frames = truth rows, one per camera image; M = total object-table rows; camera frame,
 metres; the layout is documented in docs/synthetic.md)::
 
-    attrs: format, truth_version, width, height, seed, config (JSON), target_kinds, object_kinds,
-           postures, shapes (JSON lists / dicts naming the integer codes)
+    attrs: format, truth_version, width, height, seed, scenes (rooms), sessions_per_room, protocol,
+           preset, config (JSON), target_kinds, object_kinds, postures, shapes (JSON lists / dicts
+           naming the integer codes)
     frames/frame_id, split, scene, camera     (N,) str
     frames/K (N,3,3) f64; image_size (N,2) i32 (W, H)
     frames/pose (N,30,3) f64                  smpl+head_30, exact
@@ -15,6 +16,7 @@ metres; the layout is documented in docs/synthetic.md)::
     frames/head_box, body_box (N,4) f64 x1,y1,x2,y2 px; eye_2d, gaze_2d (N,2) f64 px
     frames/R_w2c (N,3,3), cam_center (N,3)    camera pose in the scene's world frame (z up)
     frames/posture (N,) i8, person_height (N,) f32, reaching (N,) bool, time_index (N,) i32
+    frames/room, session (N,) i32              the recording: room index, session within the room
     frames/obj_start (N,) i64, obj_count (N,) i32   CSR into objects/*
     objects/instance (M,) i32, kind (M,) i8, shape (M,) i8, centroid (M,3) f64, pixels (M,) i32,
     objects/size (M,) f32
@@ -34,8 +36,35 @@ from ..errors import DatasetFormatError
 from .config import POSTURES, TARGET_KINDS
 from .room import KINDS, SHAPE_CODES
 
-TRUTH_VERSION = "1.0"
+TRUTH_VERSION = "1.1"  # 1.1: frames/room, frames/session and the protocol attributes
 FILENAME = "truth.h5"
+# attrs["protocol"]: how rooms relate to splits (generation.generate)
+PROTOCOL_SEEN = "seen-rooms: {r} sessions per room, split by session"
+PROTOCOL_UNSEEN = "unseen-rooms: one session per room, split by room"
+
+
+def protocol_line(sessions_per_room: int) -> str:
+    """The protocol line of a world recording each room in `sessions_per_room` sessions."""
+    return PROTOCOL_UNSEEN if sessions_per_room == 1 else PROTOCOL_SEEN.format(r=sessions_per_room)
+
+
+def world_provenance(root: str | Path) -> dict | None:
+    """What a store's provenance records of the synthetic world at dataset root `root` (its
+    truth.h5's attributes: format, seed, preset, rooms, sessions per room, frames per session,
+    protocol), or None when the root holds no readable truth side-car."""
+    path = Path(root) / FILENAME
+    if not path.is_file():
+        return None
+    try:
+        with h5py.File(path, "r") as f:
+            a = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
+    except OSError:
+        return None
+    r = int(a.get("sessions_per_room", 1))
+    return {"format": str(a.get("format", "")), "seed": int(a.get("seed", 0)), "preset": str(a.get("preset", "")),
+            "rooms": int(a.get("scenes", 0)), "sessions_per_room": r,
+            "frames_per_session": int(a.get("frames_per_scene", 0)),
+            "protocol": str(a.get("protocol", protocol_line(r))), "truth_version": str(a.get("truth_version", ""))}
 
 
 @dataclass
@@ -85,6 +114,8 @@ class TruthFrame:
     person_height: float
     reaching: bool
     time_index: int
+    room: int                    # room index (0..scenes-1)
+    session: int                 # session within the room (0..sessions_per_room-1)
     objects: ObjectTable
     depth: np.ndarray | None = field(default=None, repr=False)     # (H, W) float32
     instance: np.ndarray | None = field(default=None, repr=False)  # (H, W) int16
@@ -92,7 +123,8 @@ class TruthFrame:
 
 _STR = ("frame_id", "split", "scene", "camera")
 _SCALAR = {"target_kind": np.int8, "target_instance": np.int32, "target_visible": bool, "posture": np.int8,
-           "person_height": np.float32, "reaching": bool, "time_index": np.int32}
+           "person_height": np.float32, "reaching": bool, "time_index": np.int32, "room": np.int32,
+           "session": np.int32}
 _INT_ARR = {"image_size": np.int32}
 _SKIP = ("objects", "depth", "instance")
 _OBJ = {"instance": np.int32, "kind": np.int8, "shape": np.int8, "centroid": np.float64, "pixels": np.int32,
@@ -202,6 +234,9 @@ class TruthReader:
                 a = np.array([x.decode() if isinstance(x, bytes) else str(x) for x in a], dtype=object)
             self._arrays[name] = a
         self._objects = {name: self.f["objects"][name][()] for name in self.f["objects"]}
+        if "room" not in self._arrays:  # truth 1.0: one session per room, a room per scene
+            self._arrays["room"] = np.unique(self._arrays["scene"], return_inverse=True)[1].astype(np.int32)
+            self._arrays["session"] = np.zeros(len(self._arrays["room"]), np.int32)
         self.frame_ids: list[str] = list(self._arrays["frame_id"])
         self._index = {fid: i for i, fid in enumerate(self.frame_ids)}
         self.target_kinds = tuple(json.loads(self.attrs["target_kinds"]))
@@ -209,6 +244,16 @@ class TruthReader:
 
     def __len__(self) -> int:
         return len(self.frame_ids)
+
+    @property
+    def sessions_per_room(self) -> int:
+        """Sessions recorded in each room (1: every room is one scene in one split)."""
+        return int(self.attrs.get("sessions_per_room", 1))
+
+    @property
+    def protocol(self) -> str:
+        """attrs["protocol"]: seen rooms (split by session) or unseen rooms (split by room)."""
+        return str(self.attrs.get("protocol", protocol_line(self.sessions_per_room)))
 
     def index(self, frame_id: str) -> int:
         """Row of `frame_id`; KeyError naming the file when it is not there."""

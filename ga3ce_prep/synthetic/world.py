@@ -1,9 +1,11 @@
 """Scene and frame sampling: a room, a person, one or more cameras, and a continuous timeline of
 fixations (gaze targets with dwell times) along which the person stands, sits or walks.
 
-`Scene(fmt, cfg, K, width, height, rng)` builds everything from one generator; `Scene.steps(n)`
-yields one `Step` per time step with the person's world-frame state and each camera's rendered
-`View`. Conversion to camera-frame truth is `Scene.truth(step, camera_index)`.
+`Scene(fmt, cfg, K, width, height, rng)` builds everything from one generator; given a pre-built
+`room` (one room recorded in several sessions), it draws only the person, cameras and timeline
+from `rng`. `Scene.steps(n)` yields one `Step` per time step with the person's world-frame state
+and each camera's rendered `View`. Conversion to camera-frame truth is
+`Scene.truth(step, camera_index)`.
 """
 from __future__ import annotations
 
@@ -72,11 +74,16 @@ class Step:
     views: list[View]
 
 
+PLACE_ATTEMPTS = 8  # rooms sampled (or, in a given room, person placements tried) before SceneError
+
+
 class Scene:
-    """One scene: room, person, cameras, static renders and the gaze timeline."""
+    """One scene: room, person, cameras, static renders and the gaze timeline. Without `room` the
+    room is sampled from `rng` too (resampled until a placement works); with it (built with a seat,
+    `build_room(..., sitting=True)`, so a session may sit) only the person's placement is retried."""
 
     def __init__(self, fmt: str, cfg: SynthConfig, K: np.ndarray, width: int, height: int,
-                 rng: np.random.Generator):
+                 rng: np.random.Generator, room: Room | None = None):
         self.fmt, self.cfg, self.rng = fmt, cfg, rng
         self.width, self.height, self.K = width, height, K
         pc = cfg.person
@@ -84,14 +91,18 @@ class Scene:
         w = np.array([pc.postures[n] for n in names], float)
         self.posture = names[int(rng.choice(len(names), p=w / w.sum()))]
         self.body: Body = make_body(float(rng.uniform(*pc.height)), rng)
-        for _attempt in range(8):
-            room = build_room(cfg, rng, sitting=self.posture == "sitting")
+        given = room
+        for _attempt in range(PLACE_ATTEMPTS):
+            if given is None:
+                room = build_room(cfg, rng, sitting=self.posture == "sitting")
             if self.posture == "sitting" and room.seat is None:
                 self.posture = "standing"
             if self._place(room):
                 break
         else:
-            raise SceneError("no camera could see the person in 8 sampled rooms; widen camera.distance / room.size")
+            where = "the given room" if given is not None else f"{PLACE_ATTEMPTS} sampled rooms"
+            raise SceneError(f"no camera could see the person in {where} ({PLACE_ATTEMPTS} placements); widen "
+                             "camera.distance or camera.height, or room.size_x / room.size_y")
         self.room: Room = room
         self.views = [render_static(self.static, cam, cfg.render) for cam in self.cameras]
         self.banks = [NoiseBank(rng, height, width) for _ in self.cameras]
@@ -311,8 +322,10 @@ class Scene:
         eye = joints[list(EYES)].mean(axis=0)
         return joints, G, eye, gz.unit(target - eye), G[15][:, 0].copy(), state
 
-    def truth(self, step: Step, c: int, frame_id: str, split: str, scene: str, camera: str) -> TruthFrame:
-        """Camera c's exact truth for one step (camera frame), keyed by the dataset's frame id."""
+    def truth(self, step: Step, c: int, frame_id: str, split: str, scene: str, camera: str, room: int = 0,
+              session: int = 0) -> TruthFrame:
+        """Camera c's exact truth for one step (camera frame), keyed by the dataset's frame id;
+        `room` and `session` index the recording (generation.generate)."""
         cam, view, K = self.cameras[c], step.views[c], self.K
         W, H = self.width, self.height
         to = cam.to_cam
@@ -356,7 +369,8 @@ class Scene:
             target_kind=step.target.kind, target_instance=step.target.instance, target_visible=visible,
             head_box=hb, body_box=bb, eye_2d=project(eye, K), gaze_2d=gaze_2d, R_w2c=cam.R.copy(),
             cam_center=cam.C.copy(), posture=step.posture, person_height=self.body.height, reaching=step.reaching,
-            time_index=step.t, objects=objects, depth=view.depth, instance=view.instance)
+            time_index=step.t, room=room, session=session, objects=objects, depth=view.depth,
+            instance=view.instance)
 
     def _walk(self, pos, heading, waypoint, step):
         """Advance a walking person by `step` metres toward its waypoint, turning smoothly."""

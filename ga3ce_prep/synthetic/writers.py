@@ -3,6 +3,10 @@
 Ids and split conventions come from the dataset modules (gfie.frame_id, cad120.frame_id,
 gafa.SESSION_ORDER, ...) so the adapters' ids and ours agree by construction. Numbers are written
 with fixed formats so the same seed gives byte-identical annotation files.
+
+A writer names recordings by their index k = room * sessions_per_room + session (with one session
+per room, k is the room): GFIE a `scene<N>` folder per recording, CAD-120 a dataset id per
+recording, GAFA a session of the room's environment.
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ from .truth import TruthFrame
 class FrameContext:
     """What a writer gets for one camera image."""
 
-    scene_index: int
+    scene_index: int             # the recording: room * sessions_per_room + session
     camera_index: int
     t: int                       # time step within the scene
     truth: TruthFrame
@@ -48,6 +52,29 @@ def assign_splits(n: int, seed: int, fractions=(0.70, 0.15, 0.15)) -> list[str]:
         out[i] = "test"
     for i in perm[n_test:n_test + n_val]:
         out[i] = "val"
+    return out
+
+
+def assign_session_splits(rooms: int, sessions_per_room: int, seed: int,
+                          fractions=(0.70, 0.15, 0.15)) -> list[str]:
+    """Deterministic split of each recording (room-major: session j of room i is entry
+    i * sessions_per_room + j). One session per room: `assign_splits` by room. Several: session 0
+    of every room trains; val and test are about fractions[1] and fractions[2] of all sessions
+    (at least one each while there are other sessions to draw), drawn with the seed among the
+    rooms' other sessions, so every val and test room has training sessions."""
+    R = sessions_per_room
+    if R == 1:
+        return assign_splits(rooms, seed, fractions)
+    n = rooms * R
+    candidates = [i * R + j for i in range(rooms) for j in range(1, R)]
+    n_test = min(len(candidates), max(1, int(round(fractions[2] * n))))
+    n_val = min(len(candidates) - n_test, max(1, int(round(fractions[1] * n))))
+    perm = np.random.default_rng([int(seed), 0x5E55]).permutation(len(candidates))
+    out = ["train"] * n
+    for k in perm[:n_test]:
+        out[candidates[k]] = "test"
+    for k in perm[n_test:n_test + n_val]:
+        out[candidates[k]] = "val"
     return out
 
 
@@ -75,13 +102,15 @@ class FormatWriter:
     name = ""
     has_depth = True
 
-    def __init__(self, out: Path, K: np.ndarray, width: int, height: int, cfg: SynthConfig, n_scenes: int, seed: int):
+    def __init__(self, out: Path, K: np.ndarray, width: int, height: int, cfg: SynthConfig, n_scenes: int, seed: int,
+                 sessions_per_room: int = 1):
         self.out, self.K, self.W, self.H, self.cfg = Path(out), K, width, height, cfg
-        self.n_scenes, self.seed = n_scenes, seed
+        self.n_scenes, self.seed, self.sessions_per_room = n_scenes, seed, sessions_per_room
+        self.n_recordings = n_scenes * sessions_per_room
         self.out.mkdir(parents=True, exist_ok=True)
 
     def scene_names(self, i: int, n_cameras: int) -> tuple[str, str, list[str]]:
-        """(split, scene name, camera names) of scene i."""
+        """(split, scene name, camera names) of recording i."""
         raise NotImplementedError
 
     def frame_id(self, i: int, c: int, t: int) -> str:
@@ -91,7 +120,7 @@ class FormatWriter:
         raise NotImplementedError
 
     def end_scene(self, i: int) -> None:
-        """Called after scene i's last frame."""
+        """Called after recording i's last frame."""
 
     def close(self) -> None:
         """Write what is kept until the end (annotation files)."""
@@ -99,14 +128,15 @@ class FormatWriter:
 
 class GFIEWriter(FormatWriter):
     """GFIE_dataset/rgb/{train,valid,test}/scene<N>/<frame:04d>.jpg, depth/.../<frame:04d>.npy
-    (float32 metres, NaN holes), CameraKinect.npy [fx, fy, cx, cy], {split}_annotation.txt."""
+    (float32 metres, NaN holes), CameraKinect.npy [fx, fy, cx, cy], {split}_annotation.txt. Each
+    recording (a room's session) is a scene<N> folder of its split (`assign_session_splits`)."""
 
     name = "gfie"
     FOLDER = {v: k for k, v in gfie.SPLIT_FOLDERS.items()}  # split -> folder
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
-        self.splits = assign_splits(self.n_scenes, self.seed)
+        self.splits = assign_session_splits(self.n_scenes, self.sessions_per_room, self.seed)
         self.number: list[int] = []
         counts: dict[str, int] = {}
         for s in self.splits:  # scenes numbered from 1 within each split folder
@@ -148,7 +178,8 @@ class GFIEWriter(FormatWriter):
 
 class CAD120Writer(FormatWriter):
     """CAD120_dataset/rgb/<id>/RGB_<n>.png, depth/<id>/Depth_<n>.png (uint16 mm, 0 invalid),
-    CameraKinect.npy, annotation.txt (normalised boxes and 2D points). n starts at 1."""
+    CameraKinect.npy, annotation.txt (normalised boxes and 2D points). n starts at 1. Every
+    recording is test (an evaluation set), one dataset id each."""
 
     name = "cad120"
 
@@ -160,7 +191,7 @@ class CAD120Writer(FormatWriter):
 
     @staticmethod
     def dataset_id(i: int) -> str:
-        """D1S<subject>A<activity>: one id per scene (subjects cycle 1-4)."""
+        """D1S<subject>A<activity>: one id per recording (subjects cycle 1-4)."""
         return f"D1S{i % 4 + 1}A{i + 1:03d}"
 
     def scene_names(self, i, n_cameras):
@@ -223,10 +254,22 @@ def body25_keypoints(tr: TruthFrame, cfg: KeypointConfig, rng: np.random.Generat
     return out
 
 
+def environment_sessions(env: str) -> tuple[str, ...]:
+    """GAFA's sessions of one environment (gafa.SCENES): a training session, a test one, then the
+    rest in gafa.SESSION_ORDER, so two sessions of a room already cover both splits."""
+    own = [s for s in gafa.SESSION_ORDER if s.split("/", 1)[0] == env]
+    first = [next(s for s in own if gafa.session_split(s) == "train"),
+             next(s for s in own if gafa.session_split(s) == "test")]
+    return tuple(first + [s for s in own if s not in first])
+
+
 class GAFAWriter(FormatWriter):
     """raw_data/<scene>/<session>/<camera>/<frame:06d>.jpg, <camera>.pkl (plain dict of arrays),
-    intrinsics.npz (cam_mat, dist_coeffs (1, 12) zeros). Scene i is session
-    gafa.SESSION_ORDER[i % 17], cameras Camera<c>_<i // 17>."""
+    intrinsics.npz (cam_mat, dist_coeffs (1, 12) zeros). One session per room: recording i is
+    session gafa.SESSION_ORDER[i % 17]. Several: room i is environment gafa.SCENES[i % 5] and its
+    session j that environment's `environment_sessions`[j % n]; either way GAFA's split
+    (gafa.session_split) applies. Cameras are Camera<c>_<r>, r counting the earlier recordings of
+    the same session name."""
 
     name = "gafa"
     has_depth = False
@@ -235,14 +278,26 @@ class GAFAWriter(FormatWriter):
         super().__init__(*a, **kw)
         np.savez(self.out / "intrinsics.npz", cam_mat=np.asarray(self.K, np.float64), dist_coeffs=np.zeros((1, 12)))
         self.acc: dict[int, dict[str, list]] = {}
+        R = self.sessions_per_room
+        if R == 1:
+            names = [gafa.SESSION_ORDER[i % len(gafa.SESSION_ORDER)] for i in range(self.n_recordings)]
+        else:
+            names = []
+            for i in range(self.n_scenes):
+                env = environment_sessions(gafa.SCENES[i % len(gafa.SCENES)])
+                names += [env[j % len(env)] for j in range(R)]
+        self.sessions: list[str] = names
+        seen: dict[str, int] = {}
+        self.repeats: list[int] = []
+        for s in names:
+            self.repeats.append(seen.get(s, 0))
+            seen[s] = self.repeats[-1] + 1
 
-    @staticmethod
-    def session(i: int) -> str:
-        return gafa.SESSION_ORDER[i % len(gafa.SESSION_ORDER)]
+    def session(self, i: int) -> str:
+        return self.sessions[i]
 
-    @staticmethod
-    def camera(i: int, c: int) -> str:
-        return f"Camera{c + 1}_{i // len(gafa.SESSION_ORDER)}"
+    def camera(self, i: int, c: int) -> str:
+        return f"Camera{c + 1}_{self.repeats[i]}"
 
     def scene_names(self, i, n_cameras):
         s = self.session(i)
