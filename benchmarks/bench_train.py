@@ -3,7 +3,9 @@
 Measures, on a toy store with 10-60 objects per frame (ga3ce_prep/testing/toy_store.py):
   - training samples/s of the trainer's own step (forward, arccos loss, backward, clip, AdamW) at
     the paper's sizes, batch 32, with objects padded to a fixed 168 (the paper's GFIE padding),
-    padded per batch (random batches), and padded per batch with bucketing by object count;
+    padded per batch (random batches), and padded per batch with batches grouped by object count
+    ("mixed": 4 count groups, the default; "sorted": by count, a room or two a batch), with the mean
+    number of scenes in a batch;
     each in a fresh subprocess, reporting its peak resident memory (and the increase over the
     process's memory before the first step);
   - the data path alone: ContextDataset.batch (the trainer's vectorised gather) and the generic
@@ -24,12 +26,13 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
-MODES = {"fixed168": dict(n_max=168, bucket=False), "per_batch": dict(n_max=None, bucket=False),
-         "bucketed": dict(n_max=None, bucket=True)}
+MODES = {"fixed168": dict(n_max=168, batching="shuffled"), "per_batch": dict(n_max=None, batching="shuffled"),
+         "mixed": dict(n_max=None, batching="mixed"), "sorted": dict(n_max=None, batching="sorted")}
 
 
 def _rss_mb() -> float:
@@ -43,7 +46,7 @@ def _rss_mb() -> float:
 def _store(path: Path, frames: int) -> Path:
     from ga3ce_prep.testing.toy_store import write_toy_store
 
-    if not (path / "zarr.json").exists():
+    if not (path / "zarr.json").exists():  # a real store (a synthetic world's) is used as it is
         write_toy_store(path, frames, seed=0)
     return path
 
@@ -62,7 +65,8 @@ def one_mode(store: str, mode: str, steps: int, warmup: int, threads: int, batch
     torch.manual_seed(0)
     model = GA3CE().train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4, weight_decay=0.1)
-    batches = BucketBatchSampler(ds.obj_count, batch, seed=0, bucket=opts["bucket"]).batches()
+    batches = BucketBatchSampler(ds.obj_count, batch, seed=0, batching=opts["batching"]).batches()
+    rooms = float(np.mean([len(np.unique(ds.scene[b])) for b in batches]))
     rss0 = _rss_mb()
     slots = 0
     for i in range(warmup):
@@ -78,7 +82,7 @@ def one_mode(store: str, mode: str, steps: int, warmup: int, threads: int, batch
     dt = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"mode": mode, "samples_per_s": n / dt, "steps": steps, "batch": batch, "threads": threads,
-            "mean_object_slots": slots / steps, "peak_rss_mb": peak, "rss_before_mb": rss0,
+            "mean_object_slots": slots / steps, "scenes_per_batch": rooms, "peak_rss_mb": peak, "rss_before_mb": rss0,
             "peak_increase_mb": peak - rss0}
 
 
@@ -117,7 +121,8 @@ def data_path(store: str, batch: int, seconds: float = 2.0) -> dict:
 @click.option("--threads", default=2, show_default=True, help="torch threads.")
 @click.option("--frames", default=4000, show_default=True, help="Frames of the toy store.")
 @click.option("--store", default=str(ROOT / "out" / "bench_train_toy.zarr"), show_default=True,
-              help="Toy store path (made if missing).")
+              help="Store to train on: a toy store is made there if missing; a real store (make demo's "
+                   "out/synthetic.zarr) shows how batches group its scenes.")
 @click.option("--json", "json_path", default=None, help="Also write the figures as JSON.")
 @click.option("--no-lock", is_flag=True, help="Do not take the CPU lock (benchmarks/cpu_lock.py).")
 @click.option("--one", default=None, hidden=True)
@@ -137,7 +142,8 @@ def main(steps, warmup, batch, threads, frames, store, json_path, no_lock, one):
             r = json.loads(p.stdout.strip().splitlines()[-1])
             results["training"].append(r)
             click.echo(f"train {mode:10s}: {r['samples_per_s']:7.1f} samples/s  (mean object slots "
-                       f"{r['mean_object_slots']:.0f}, peak RSS {r['peak_rss_mb']:.0f} MB, "
+                       f"{r['mean_object_slots']:.0f}, {r['scenes_per_batch']:.1f} scenes a batch, "
+                       f"peak RSS {r['peak_rss_mb']:.0f} MB, "
                        f"+{r['peak_increase_mb']:.0f} MB over setup)")
         d = data_path(store, batch)
         results["data_path"] = d

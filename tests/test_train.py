@@ -9,7 +9,9 @@ from click.testing import CliRunner
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.model import GA3CE, METHODS, ModelConfig
-from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
+from ga3ce_prep.store import StoreWriter
+from ga3ce_prep.testing.toy_store import ATTRS as TOY_ATTRS
+from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
 from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.ablate import default_rows
@@ -117,6 +119,16 @@ def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
         evaluate(other, run / "best.pt", split="test", cdf_path=None)
     r = evaluate(other, run / "best.pt", split="test", cdf_path=None, force=True)
     assert r["n_frames"] > 0
+    # a store with no train split (CAD-120, the transfer world) is another dataset by design: Table 2
+    frames, objects, scenes = toy_world(120, 9, 40, None)
+    frames["split"][:] = 2
+    w = StoreWriter(tmp_path / "transfer.zarr", scene_names=scenes, overwrite=True)
+    w.append_frames(frames, objects)
+    w.close({**TOY_ATTRS, "dataset": {"name": "toy", "root": "(generated)"}})
+    t = evaluate(tmp_path / "transfer.zarr", run / "best.pt", split="test", cdf_path=None)
+    forced = evaluate(tmp_path / "transfer.zarr", run / "best.pt", split="test", cdf_path=None, force=True)
+    assert t["n_frames"] == forced["n_frames"] > r["n_frames"]
+    assert t["methods"]["model"]["mae3d"] == forced["methods"]["model"]["mae3d"] > 0
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="cannot read"):
         load_checkpoint(tmp_path / "bad.pt")
@@ -257,7 +269,7 @@ def test_cli_recipe_options_are_the_config_fields():
             if hasattr(d, name) and name not in ("store", "out", "n_max"):   # n_max: batch | auto | N
                 assert p.default == getattr(d, name), name
     res = CliRunner().invoke(cli, ["train", "--help"])
-    assert "--no-bucket" in res.output
+    assert "--batching [mixed|sorted|shuffled]" in res.output
     assert "--no-progress" in res.output
     assert "no-ga3ce" in res.output
     text = " ".join(res.output.split())

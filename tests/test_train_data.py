@@ -130,10 +130,27 @@ def test_bucket_sampler():
     def padding(batches):
         return sum(len(b) * counts[b].max() - counts[b].sum() for b in batches) / counts.sum()
 
-    plain = BucketBatchSampler(counts, 32, seed=4, bucket=False).batches()
-    assert padding(b0) < 0.1 < 0.5 < padding(plain)
+    plain = BucketBatchSampler(counts, 32, seed=4, batching="shuffled").batches()
+    tight = BucketBatchSampler(counts, 32, seed=4, batching="sorted").batches()
+    assert padding(tight) < 0.1 < padding(b0) < 0.35 < padding(plain)
     ordered = BucketBatchSampler(counts, 32, shuffle=False).batches()
     assert np.all(np.diff(counts[np.concatenate(ordered)]) >= 0)
+    with pytest.raises(ValueError, match="batching"):
+        BucketBatchSampler(counts, 32, batching="bucketed")
+
+
+def test_mixed_batches_mix_rooms():
+    """40 rooms of 50 frames whose object counts differ by room (as in a synthetic world): sorted
+    batches hold one or two rooms, mixed ones many, shuffled ones nearly a batch's worth."""
+    rng = np.random.default_rng(1)
+    room = np.repeat(np.arange(40), 50)
+    counts = rng.integers(5, 80, 40)[room] + rng.integers(0, 3, len(room))
+
+    def rooms(batching):
+        return np.mean([len(np.unique(room[b])) for b in BucketBatchSampler(counts, 32, seed=0, batching=batching)
+                        .batches()])
+
+    assert rooms("sorted") < 4 < 8 < rooms("mixed") < rooms("shuffled")
 
 
 def test_store_fingerprint(tmp_path):

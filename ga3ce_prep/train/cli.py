@@ -201,7 +201,8 @@ def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, for
               help="The dataset's root, when it is no longer where the store's provenance says (the split's rows, "
               "and with --gfm the images and depth, are read from it).")
 @click.option("--force", is_flag=True,
-              help="Evaluate on a store other than the one the checkpoint was trained on (e.g. cross-dataset). "
+              help="Evaluate on a store other than the one the checkpoint was trained on. Not needed for a store "
+              "without a train split (CAD-120, `synth --preset transfer`): that is the paper's Table 2 transfer. "
               "That is all it does: a damaged store is refused even so.")
 @click.option("--gfm", "gfm", default=None, metavar="CHECKPOINT",
               help="GFIE's checkpoint (gfiemodel.pt.tar): also print GFIE's Table 1 columns "

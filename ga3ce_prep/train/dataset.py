@@ -7,7 +7,7 @@ samples into a `Batch` with a boolean object mask: to the batch's largest object
 fixed N_max (the dataset's `DatasetProfile.n_max`), keeping the largest masks (by pixel area) when a
 frame has more. `ContextDataset.batch(indices)` builds the same Batch straight from the arrays
 (vectorised gather; what the trainer uses). `BucketBatchSampler` groups frames of similar object
-counts so per-batch padding stays small.
+counts so per-batch padding stays small, without gathering a batch from one room ("mixed").
 
 Frames with no finite view prior are left out; frames with unknown gaze are left out when
 `require_gaze` (training, evaluation); `left_out` keeps their store rows by reason. Objects with
@@ -183,42 +183,61 @@ def collate(samples: Sequence[dict[str, torch.Tensor]], n_max: int | None = None
                  objects=objects, mask=mask, index=stack("index"))
 
 
-class BucketBatchSampler(Sampler[list[int]]):
-    """Batches of frames with similar object counts (a DataLoader batch_sampler, or iterate it).
+BATCHINGS: tuple[str, ...] = ("mixed", "sorted", "shuffled")
 
-    Each epoch the frames are shuffled, cut into windows of `window` batches, sorted by object count
-    inside each window, cut into batches, and the batches shuffled: per-batch padding stays small
-    while every epoch still mixes frames. bucket=False gives plain shuffled batches; shuffle=False
-    gives batches in count order (evaluation). Seeded by (seed, epoch): call set_epoch(e).
+
+class BucketBatchSampler(Sampler[list[int]]):
+    """Training batches that keep per-batch object padding small (a DataLoader batch_sampler, or
+    iterate it). Seeded by (seed, epoch): call set_epoch(e). `batching`:
+
+    - "mixed" (the default): frames ranked by object count (ties broken at random) and cut into
+      `groups` groups of equal size; each group is shuffled and cut into batches, and the batches
+      of all groups shuffled. A batch pads to its group's largest count and draws from a 1/groups
+      share of the frames, so it mixes many rooms.
+    - "sorted": shuffled, cut into windows of `window` batches and sorted by count inside each
+      window: the least padding, but a room's frames have nearly the same count, so each batch
+      holds frames of one or two rooms.
+    - "shuffled": plain shuffled batches (padding to nearly the largest count of all).
+
+    shuffle=False gives batches in count order (evaluation).
     """
 
-    def __init__(self, counts: np.ndarray, batch_size: int, seed: int = 0, bucket: bool = True,
-                 shuffle: bool = True, window: int = 64, drop_last: bool = False):
+    def __init__(self, counts: np.ndarray, batch_size: int, seed: int = 0, batching: str = "mixed",
+                 shuffle: bool = True, groups: int = 4, window: int = 64, drop_last: bool = False):
+        if batching not in BATCHINGS:
+            raise ValueError(f"batching must be one of {BATCHINGS}, got {batching!r}")
         self.counts = np.asarray(counts)
-        self.batch_size, self.seed, self.bucket, self.shuffle = batch_size, seed, bucket, shuffle
-        self.window, self.drop_last = window, drop_last
+        self.batch_size, self.seed, self.batching, self.shuffle = batch_size, seed, batching, shuffle
+        self.groups, self.window, self.drop_last = groups, window, drop_last
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
+    def _cut(self, order: np.ndarray) -> list[np.ndarray]:
+        bs, n = self.batch_size, len(order)
+        return [order[i:i + bs] for i in range(0, n, bs) if not self.drop_last or i + bs <= n]
+
     def batches(self) -> list[np.ndarray]:
         n, bs = len(self.counts), self.batch_size
         rng = np.random.default_rng([self.seed, self.epoch])
         if not self.shuffle:
-            order = np.argsort(self.counts, kind="stable") if self.bucket else np.arange(n)
-            return [order[i:i + bs] for i in range(0, n, bs) if not self.drop_last or i + bs <= n]
+            return self._cut(np.argsort(self.counts, kind="stable") if self.batching != "shuffled" else np.arange(n))
         order = rng.permutation(n)
-        if self.bucket:
-            w = bs * self.window
-            order = np.concatenate([chunk[np.argsort(self.counts[chunk], kind="stable")]
-                                    for chunk in np.split(order, range(w, n, w))]) if n else order
-        out = [order[i:i + bs] for i in range(0, n, bs) if not self.drop_last or i + bs <= n]
+        if self.batching == "mixed":
+            ranked = order[np.argsort(self.counts[order], kind="stable")]
+            out = [b for g in np.array_split(ranked, max(1, min(self.groups, n // max(bs, 1))))
+                   for b in self._cut(rng.permutation(g))]
+        else:
+            if self.batching == "sorted" and n:
+                w = bs * self.window
+                order = np.concatenate([c[np.argsort(self.counts[c], kind="stable")]
+                                        for c in np.split(order, range(w, n, w))])
+            out = self._cut(order)
         return [out[j] for j in rng.permutation(len(out))]
 
     def __iter__(self) -> Iterator[list[int]]:
         return (b.tolist() for b in self.batches())
 
     def __len__(self) -> int:
-        n = len(self.counts)
-        return n // self.batch_size if self.drop_last else -(-n // self.batch_size)
+        return len(self.batches())

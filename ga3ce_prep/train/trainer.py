@@ -34,7 +34,7 @@ from ..model import GA3CE, ModelConfig, angular_loss
 from ..store import ContextStore, open_store
 from .augment import object_dropout, object_jitter, view_noise
 from .checkpoint import CheckpointError, check_checkpoint, load_checkpoint, save_checkpoint
-from .dataset import Batch, BucketBatchSampler, ContextDataset, store_fingerprint
+from .dataset import BATCHINGS, Batch, BucketBatchSampler, ContextDataset, store_fingerprint
 from .distributed import Ranks
 from .evaluate import predict
 from .plots import plot_curves
@@ -84,7 +84,11 @@ class TrainConfig:
     n_max: int | None = (
         # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
         None)
-    bucket: bool = True  # group batches by object count (less padding per batch)
+    batching: Literal["mixed", "sorted", "shuffled"] = (
+        # how frames are grouped into batches, the same for every arm of a comparison: mixed = by
+        # object count in 4 groups (little padding, many rooms a batch), sorted = by count (least
+        # padding, a room or two a batch), shuffled: docs/training.md "Batches"
+        "mixed")
     train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
     val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
     progress: bool = True  # progress bars (else one log line per epoch)
@@ -100,6 +104,8 @@ class TrainConfig:
         if not (0.0 <= self.object_dropout < 1.0 and 0.0 <= self.object_frame_dropout < 1.0) or self.object_jitter < 0:
             raise ConfigError(f"object_dropout and object_frame_dropout must be in [0, 1) and object_jitter >= 0, got "
                               f"{self.object_dropout}, {self.object_frame_dropout} and {self.object_jitter}")
+        if self.batching not in BATCHINGS:
+            raise ConfigError(f"batching must be one of {', '.join(BATCHINGS)}, got {self.batching!r}")
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"device must be cpu or cuda, got {self.device!r}")
 
@@ -308,11 +314,11 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
     if not config.model.use_context:
         return _appearance_only(out, state, model, config.epochs, prior) if ranks.main else out
 
-    # the optimiser, batches by object count, the per-step schedule
+    # the optimiser, the batches (from the store's object counts whether or not this model reads
+    # the objects: every arm of an ablation sees the same batches), the per-step schedule
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
-    sampler = BucketBatchSampler(train_ds.obj_count if config.model.use_objects else np.zeros(len(train_ds)),
-                                 batch_size, seed=config.seed, bucket=config.bucket)
+    sampler = BucketBatchSampler(train_ds.obj_count, batch_size, seed=config.seed, batching=config.batching)
     steps_per_epoch = len(sampler)
     total_steps = steps_per_epoch * config.epochs
     warmup_steps = max(1, round(config.warmup_epochs * steps_per_epoch))
