@@ -18,7 +18,7 @@ from ga3ce_prep.synthetic.cli import synth
 from ga3ce_prep.synthetic.config import load_config, load_preset, preset_names
 from ga3ce_prep.synthetic.room import build_room
 from ga3ce_prep.synthetic.stats import split_recordings
-from ga3ce_prep.synthetic.truth import PROTOCOL_UNSEEN, TruthReader
+from ga3ce_prep.synthetic.truth import PROTOCOL_UNSEEN, TruthReader, world_provenance
 from ga3ce_prep.synthetic.world import Scene, SceneError
 from ga3ce_prep.synthetic.writers import assign_session_splits, assign_splits
 
@@ -182,7 +182,7 @@ def test_synth_command_presets_and_sessions(tmp_path):
 
 
 def test_provenance_records_the_protocol(world, tmp_path):
-    p = open_dataset("gfie", world).provenance()["synthetic"]
+    p = world_provenance(world)  # what run_pipeline records as the store's dataset.synthetic
     assert p["protocol"].startswith("seen-rooms") and p["sessions_per_room"] == R
     assert (p["seed"], p["rooms"], p["frames_per_session"]) == (13, ROOMS, F)
     # a 1.0 side-car (no room/session datasets): one session per room, rooms by scene

@@ -51,16 +51,8 @@ class DatasetAdapter(ABC):
 
     def provenance(self) -> dict[str, Any]:
         """What the store's provenance records about how the dataset was read: the units assumed
-        for each quantity (depth, 3D points, boxes) and how they were decided; for a synthetic
-        world (a truth.h5 at the root) also how it was made (`synthetic.truth.world_provenance`:
-        seed, rooms, sessions per room, protocol)."""
-        from ..synthetic.truth import world_provenance
-
-        out: dict[str, Any] = {"units": dict(self.units)}
-        world = world_provenance(self.root)
-        if world is not None:
-            out["synthetic"] = world
-        return out
+        for each quantity (depth, 3D points, boxes) and how they were decided."""
+        return {"units": dict(self.units)}
 
     def require(self, rel: str, what: str) -> Path:
         """root/rel, or DatasetFormatError saying what is missing and what the layout should be."""

@@ -39,6 +39,7 @@ from ..frames import FrameRef, Window, frame_windows
 from ..params import from_dict
 from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION, SOURCE_STAGES, UNFINISHED, validate_store_attrs
+from ..synthetic.truth import world_provenance
 from .cache import Cache, file_identity, stable_hash
 from .config import PipelineConfig, load_pipeline
 from .finalize import FinalizeCounts, LostEntries, finalize
@@ -168,6 +169,9 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
         env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
         attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
         attrs["dataset"].update(read_as)  # the units the adapter assumed, and how they were decided
+        world = world_provenance(data_root)  # a synthetic world: its seed, rooms, sessions, protocol
+        if world is not None:
+            attrs["dataset"]["synthetic"] = world
         sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
                    for st in SOURCE_STAGES}
         reports: list[StageReport] = []
