@@ -9,7 +9,7 @@ import sys
 import click
 
 from . import __version__
-from .errors import DEBUG_HINT, Ga3ceError, where_raised
+from .errors import DEBUG_HINT, Ga3ceError, environment_problem, where_raised
 
 # name -> (module:attribute, one-line help). Order is the order `--help` lists them in.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -35,6 +35,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export-gfie-view": ("ga3ce_prep.estimators.cli:export_gfie_view",
                          "Export GFIE's head network from its checkpoint to an ONNX file for the onnx view backend."),
 }
+
+# What each command writes, for the machine's refusals (a full disk, a permission:
+# errors.environment_problem): the option (or positional argument, by its index) naming the place,
+# for an OSError that names none (a full disk's write(2) does not); what it is; what is kept and
+# how to go on once that is fixed. `run` says it all itself, with the figures of its cache.
+WRITES: dict[str, tuple[str | int, str, str]] = {
+    "run": ("--out", "the store", "finished cache entries are kept: rerun the same command to resume"),
+    "train": ("--out", "the run folder's checkpoints and history.csv", "the epochs finished so far are kept in "
+              "the run folder (last.pt, history.csv): rerun with --resume to continue"),
+    "ablate": ("--out", "the ablation's run folders", "finished rows are kept: rerun the same command to continue"),
+    "eval": ("--json", "the evaluation's JSON", ""),
+    "report": ("--out", "the report's page and figures", ""),
+    "export": (1, "the HDF5 file", ""),
+    "predict": ("--out", "the drawing", ""),
+    "show": ("--out", "the drawing", ""),
+}
+RERUN = "nothing it finished is lost: rerun the command"
 
 
 class LazyGroup(click.Group):
@@ -78,9 +95,9 @@ def cli() -> None:
 
 
 def main() -> None:
-    """Entry point: runs the CLI and prints ga3ce-prep's own errors as one clear `error:` line (exit
-    2), anything else as one line saying it is a bug (exit 1); GA3CE_DEBUG=1 raises instead, for the
-    traceback."""
+    """Entry point: runs the CLI and prints ga3ce-prep's own errors and the machine's (a full disk, a
+    permission: `environment_problem`) as one clear `error:` line (exit 2), anything else as one line
+    saying it is a bug (exit 1); GA3CE_DEBUG=1 raises instead, for the traceback."""
     try:
         cli.main(standalone_mode=False)
     except click.exceptions.Abort:
@@ -94,12 +111,31 @@ def main() -> None:
             raise
         click.secho(f"error: {e}", fg="red", err=True)
         sys.exit(2)
-    except Exception as e:  # a bug: one line, the traceback on request
+    except Exception as e:  # the machine's problem (errors.environment_problem), else a bug: one line
         if os.environ.get("GA3CE_DEBUG"):
             raise
+        problem = _refused(e, sys.argv[1:])
+        if problem is not None:
+            click.secho(f"error: {problem}", fg="red", err=True)
+            sys.exit(2)
         click.secho(f"error: unexpected {type(e).__name__}: {e} (at {where_raised(e)}); a bug in ga3ce-prep: "
                     f"{DEBUG_HINT} and report it", fg="red", err=True)
         sys.exit(1)
+
+
+def _refused(e: Exception, args: list[str]):
+    """errors.environment_problem for command line `args` (WRITES: the place, what, what is kept)."""
+    name = next((a for a in args if a in COMMANDS), "")
+    where, what, kept = WRITES.get(name, ("", "", ""))
+    rest = args[args.index(name) + 1:] if name else []
+    if isinstance(where, int):
+        plain = [a for a in rest if not a.startswith("-")]
+        path = plain[where] if len(plain) > where else None
+    else:
+        aliases = {where, {"--out": "-o"}.get(where, where)}
+        path = next((rest[i + 1] for i, a in enumerate(rest[:-1]) if a in aliases), None)
+        path = path or next((a.split("=", 1)[1] for a in rest if a.split("=", 1)[0] in aliases and "=" in a), None)
+    return environment_problem(e, path, what if path else "", kept=kept or RERUN)
 
 
 if __name__ == "__main__":

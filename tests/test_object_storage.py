@@ -133,6 +133,14 @@ def test_remote_paths_are_checked_before_any_work(s3, synth_world, tmp_path):
 
     with pytest.raises(ConfigError, match="bucket nobucket does not exist"):
         run_pipeline("synthetic", synth_world, "s3://nobucket/x.zarr", overrides=SETS, progress=False)
-    with pytest.raises(ConfigError, match="a local --out is committed by a rename"):
-        run_pipeline("synthetic", synth_world, tmp_path / "x.zarr", overrides=SETS, progress=False,
+
+
+def test_a_local_store_with_its_work_directory_on_s3(s3, synth_world, local_store, tmp_path):
+    """The cache on object storage, the store built beside --out and renamed over it."""
+    import fsspec
+
+    s = run_pipeline("synthetic", synth_world, tmp_path / "x.zarr", overrides=SETS, progress=False,
                      work_dir="s3://bkt/x.work")
+    assert s.store_written and fsspec.filesystem("s3").find("bkt/x.work/cache")
+    assert store_digests(tmp_path / "x.zarr") == store_digests(local_store)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.zarr", "x.zarr.lock"]  # no scratch left beside it

@@ -32,8 +32,9 @@ import click
 @click.option("--limit", type=int, default=None,
               help="Process only the first N frames (in the dataset's order; N >= 1). Default: every frame.")
 @click.option("--work", default=None,
-              help="Work directory for its lock, the stage cache and finalize's scratch (local, or a URL when --out "
-                   "is one). Default: <out>.work (the output's own lock is <out>.lock)")
+              help="Work directory for its lock, the stage cache and finalize's scratch: any filesystem or URL, "
+                   "whatever --out is (the store is then built beside --out). Default: <out>.work (the output's own "
+                   "lock is <out>.lock)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a pipeline setting, e.g. --set stages.view.params.mean_error_deg=30 (repeatable).")
 @click.option("--models", "-m", type=click.Path(file_okay=False), default=None,

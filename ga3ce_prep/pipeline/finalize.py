@@ -1,18 +1,21 @@
 """Finalize: consolidate the shards' cache entries into the Zarr store, atomically.
 
-A local store is written to `<work>/partial.zarr` shard by shard (memory: one shard's entries
-plus the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store,
-if any, is moved aside first and removed after). A store on object storage, where there is no
-rename, is committed by its root metadata instead: a store reads as finished only once its root
-attributes (schema_version, the run key, the integrity record) are there (`store.open_store`,
-`_finished_counts`), so the previous store's root attributes are removed first (one PUT), then its
-other objects, then the new arrays are written in place and the root attributes last (one PUT: the
-commit). Either way a run killed during finalize leaves no half store that reads as finished under
-`--out`; the next run writes it again from the cache. If `--out` already holds an intact store
-(`store.store_problems`) of the same run key (same frames, stages, parameters and inputs),
-finalize does nothing. A cache entry that is missing or damaged (`Cache.load` removes it) stops
-finalize with `LostEntries` once every shard has been looked at: the run computes them again and
-finalizes again (run.py).
+A local store is written to `<scratch>/partial.zarr` shard by shard (memory: one shard's entries
+plus the writer's chunk buffers), flushed to disk, then renamed over `--out` (the previous store, if
+any, is moved aside to `<scratch>/previous.zarr` first and removed after). The scratch directory is
+on the output's filesystem, so the rename never crosses filesystems (`scratch_dir`): the work
+directory when a rename from there reaches `--out` (the default `<out>.work`), else `<out>.finalize`
+beside `--out` (a work directory on another disk or on object storage), removed after the commit. A
+store on object storage, where there is no rename, is committed by its root metadata instead: a
+store reads as finished only once its root attributes (schema_version, the run key, the integrity
+record) are there (`store.open_store`, `_finished_counts`), so the previous store's root attributes
+are removed first (one PUT), then its other objects, then the new arrays are written in place and
+the root attributes last (one PUT: the commit). Either way a run killed during finalize leaves no
+half store that reads as finished under `--out`; the next run writes it again from the cache. If
+`--out` already holds an intact store (`store.store_problems`) of the same run key (same frames,
+stages, parameters and inputs), finalize does nothing. A cache entry that is missing or damaged
+(`Cache.load` removes it) stops finalize with `LostEntries` once every shard has been looked at: the
+run computes them again and finalizes again (run.py).
 
 Which frames are kept (docs/pipeline.md): a failure of input, depth, head or view drops the frame;
 a failure of objects keeps it with zero objects; a failure of pose keeps it with a NaN pose.
@@ -20,6 +23,7 @@ Every failure is a `failures/*` record (frame id, stage, error class, message, a
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import shutil
@@ -158,8 +162,8 @@ def finalize(shards: list[Shard], cache: Cache, out: Location, work: Location, a
              run_key: str, sources: dict[str, tuple[str, ...]], progress: bool = True) -> tuple[FinalizeCounts, bool]:
     """Write the store at `out` (a local path or a URL) from the cache (see the module docstring).
     Returns the counts and whether anything was written (False: `out` was already this run's
-    store). sources: per stage of store.SOURCE_STAGES the names behind frames/<stage>_source. A
-    local `out` needs a local `work`."""
+    store). sources: per stage of store.SOURCE_STAGES the names behind frames/<stage>_source.
+    `work` may be anywhere (another filesystem, a URL): a local store is built in `scratch_dir`."""
     done = _finished_counts(out, run_key)
     if done is not None:
         return done, False
@@ -167,7 +171,8 @@ def finalize(shards: list[Shard], cache: Cache, out: Location, work: Location, a
         _uncommit(str(out))
         target: Location = out
     else:
-        target = Path(work) / "partial.zarr"
+        scratch = scratch_dir(Path(out), work)
+        target = scratch / "partial.zarr"
         if target.exists():
             shutil.rmtree(target)
     writer = StoreWriter(target, overwrite=True)
@@ -179,8 +184,29 @@ def finalize(shards: list[Shard], cache: Cache, out: Location, work: Location, a
         writer.commit(attrs)
     else:
         writer.commit(attrs)
-        _swap(Path(target), Path(out), Path(work))
+        _swap(Path(target), Path(out), scratch)
+        if scratch != Path(work):
+            shutil.rmtree(scratch)
     return counts, True
+
+
+def scratch_dir(out: Path, work: Location) -> Path:
+    """Where finalize builds the local store `out`: the work directory when a rename from there
+    reaches `out`'s directory (one filesystem and mount), else `<out>.finalize` beside `out` (kept
+    apart by the output's lock, `<out>.lock`). Asked by trying a rename, since two mounts of one
+    filesystem share a device number yet refuse renames between them (EXDEV)."""
+    if not is_remote(work):
+        probe, landed = Path(work) / "rename-probe", out.with_name(out.name + ".rename-probe")
+        probe.touch()
+        try:
+            os.rename(probe, landed)
+            landed.unlink()
+            return Path(work)
+        except OSError as e:
+            probe.unlink(missing_ok=True)
+            if e.errno != errno.EXDEV:
+                raise
+    return out.with_name(out.name + ".finalize")
 
 
 def _write_shards(shards: list[Shard], cache: Cache, writer: StoreWriter, progress: bool) -> FinalizeCounts:
@@ -209,17 +235,23 @@ def _write_shards(shards: list[Shard], cache: Cache, writer: StoreWriter, progre
     return counts
 
 
-def _swap(partial: Path, out: Path, work: Path) -> None:
-    """Rename the finished partial store over `out`, the previous store moved aside first."""
+def _swap(partial: Path, out: Path, scratch: Path) -> None:
+    """Rename the finished partial store over `out`, the previous store moved aside (to `scratch`,
+    on the output's filesystem) first, and back when the rename is refused."""
     _fsync_tree(partial)
-    old = work / "previous.zarr"
+    old = scratch / "previous.zarr"
     if old.exists():
         shutil.rmtree(old)
     fault("finalize.swap")
     if out.exists():
         os.rename(out, old)
         fault("finalize.aside")
-    os.rename(partial, out)
+    try:
+        os.rename(partial, out)
+    except OSError:  # refused (a permission, a lost mount): the previous store goes back, if it can
+        if old.exists() and not out.exists():
+            os.rename(old, out)
+        raise
     if old.exists():
         shutil.rmtree(old)
 

@@ -19,7 +19,9 @@ The work directory (default `<out>.work/`) holds the lock, the cache and finaliz
 to make later runs with changed parameters recompute only what changed, or delete it to free space.
 `--out` and `--work` may be URLs of object storage (location.py): a remote store with its work
 directory beside it (the cache on object storage, for workers without a shared filesystem) or a
-local one; a local store needs a local work directory.
+local one, and a local store with its work directory anywhere (finalize.scratch_dir). A write the
+machine refuses (a full disk, a permission, a read-only or lost filesystem) stops the run with one
+line naming the place, what the run needs there and what is kept (`_write_problem`).
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..errors import ConfigError, DatasetFormatError, StoreError
+from ..errors import ConfigError, DatasetFormatError, EnvironmentProblem, StoreError, environment_problem
 from ..files import file_sha256
 from ..frames import FrameRef, Window, frame_windows
 from ..params import from_dict
@@ -161,37 +163,44 @@ def run_pipeline(pipeline: str | Path | dict[str, Any], data: str | Path, out: s
     conf, out_path = _checked_config(pipeline, data_root, out, overrides, shard_size, workers, models, overwrite)
     work = _work_dir(work_dir, out_path)
     frames, read_as = _open_frames(conf, data_root, limit)
-    with RunLock(work, str(out_path)) as lock:
-        _check_output(out_path, conf, data_root, overwrite)  # again: another run may have written it meanwhile
-        cache = Cache(join(work, "cache"))
-        cache.remove_temporaries()  # left by a killed run; we hold the lock
-        shards = _make_shards(conf, frames, data_root)
-        env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
-        attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
-        attrs["dataset"].update(read_as)  # the units the adapter assumed, and how they were decided
-        world = world_provenance(data_root)  # a synthetic world: its seed, rooms, sessions, protocol
-        if world is not None:
-            attrs["dataset"]["synthetic"] = world
-        sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
-                   for st in SOURCE_STAGES}
-        reports: list[StageReport] = []
-        compute_seconds = fin_seconds = 0.0
-        for attempt in range(1, REPAIR_PASSES + 1):
-            done, seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
-            reports, compute_seconds = reports + done, compute_seconds + seconds
-            t_fin = time.perf_counter()
-            try:
-                lock.check()
-                counts, written = finalize(shards, cache, out_path, work, attrs, _run_key(conf, data_root, shards),
-                                           sources, progress=progress)
-                break
-            except LostEntries as e:
-                if attempt == REPAIR_PASSES:
-                    raise StoreError(f"{e}; they were computed again {attempt - 1} times and are still unreadable: "
-                                     f"check the disk of {cache.root}") from None
-                log.warning("%s: computing them again", e)
-            finally:
-                fin_seconds += time.perf_counter() - t_fin
+    cache, shards, phase = Cache(join(work, "cache")), [], "work"
+    try:
+        with RunLock(work, str(out_path)) as lock:
+            _check_output(out_path, conf, data_root, overwrite)  # again: another run may have written it since
+            cache.remove_temporaries()  # left by a killed run; we hold the lock
+            shards = _make_shards(conf, frames, data_root)
+            env = TaskEnv(cache.root, data_root, conf.stages, conf.upstream, conf.cache_depth_maps)
+            attrs = provenance(conf, data_root, shard_size=conf.shard_size, n_shards=len(shards), limit=limit)
+            attrs["dataset"].update(read_as)  # the units the adapter assumed, and how they were decided
+            world = world_provenance(data_root)  # a synthetic world: its seed, rooms, sessions, protocol
+            if world is not None:
+                attrs["dataset"]["synthetic"] = world
+            sources = {st: backend_class(st, conf.stages[st].backend).sources or (conf.stages[st].backend,)
+                       for st in SOURCE_STAGES}
+            reports: list[StageReport] = []
+            compute_seconds = fin_seconds = 0.0
+            for attempt in range(1, REPAIR_PASSES + 1):
+                phase = "cache"
+                done, seconds = execute(env, shards, workers=workers, scheduler=scheduler, progress=progress)
+                reports, compute_seconds = reports + done, compute_seconds + seconds
+                t_fin, phase = time.perf_counter(), "finalize"
+                try:
+                    lock.check()
+                    counts, written = finalize(shards, cache, out_path, work, attrs,
+                                               _run_key(conf, data_root, shards), sources, progress=progress)
+                    break
+                except LostEntries as e:
+                    if attempt == REPAIR_PASSES:
+                        raise StoreError(f"{e}; they were computed again {attempt - 1} times and are still "
+                                         f"unreadable: check the disk of {cache.root}") from None
+                    log.warning("%s: computing them again", e)
+                finally:
+                    fin_seconds += time.perf_counter() - t_fin
+    except OSError as e:
+        problem = _write_problem(e, phase, work, out_path, cache, shards)
+        if problem is None:
+            raise
+        raise problem from e
     return _summarize(str(out_path), conf, len(shards), reports, counts, written, compute_seconds=compute_seconds,
                       finalize_seconds=fin_seconds, wall_seconds=time.perf_counter() - t0)
 
@@ -277,13 +286,62 @@ def _probe(url: str) -> tuple[bool, bool]:
 
 
 def _work_dir(work_dir: str | Path | None, out: Location) -> Location:
-    """The work directory: --work, else `<out>.work` (on object storage too, beside the store). A
-    local store needs a local work directory (it is committed by a rename from there)."""
-    work = absolute(work_dir or f"{out}.work")
-    if is_remote(work) and not is_remote(out):
-        raise ConfigError(f"--work {work}: a local --out is committed by a rename from a local work directory; "
-                          "give a local --work, or write the store to object storage too")
-    return work
+    """The work directory: --work (any filesystem or URL, whatever --out is), else `<out>.work` (on
+    object storage too, beside the store)."""
+    return absolute(work_dir or f"{out}.work")
+
+
+def _write_problem(e: OSError, phase: str, work: Location, out: Location, cache: Cache,
+                   shards: list[Shard]) -> EnvironmentProblem | None:
+    """A write the machine refused (errors.environment_problem; None: a bug) as one line: the place
+    (the stage cache, the work directory, or where finalize builds the store), what the run needs
+    there (for a full disk about how much: the entries still to write at the mean size of those
+    written, or the store at the size of the entries it is made of), the fix, and what is kept.
+    The place is the path in the exception, else the phase the run was in ("work", "cache",
+    "finalize")."""
+    at = str(e.filename) if e.filename is not None else ""
+    sizes, total = _entry_sizes(cache, shards)
+    per = sum(sizes.values()) / len(sizes) if sizes else 0
+    store = [n for (stage, _), n in sizes.items() if stage != "depth"]  # depth maps stay out of the store
+    store_need = int(sum(store) / len(store) * (total - len(shards))) if store else None
+    in_cache = at.startswith(str(cache.root)) if at else phase == "cache"
+    beside = None if is_remote(out) else Path(f"{out}.finalize")  # finalize.scratch_dir: building beside --out
+    by_out = at.startswith(str(out)) if at else phase == "finalize" and (beside is None or beside.exists())
+    if in_cache:
+        place, need = f"the stage cache in --work {work}: {total - len(sizes)} entries still to write", \
+            int(per * (total - len(sizes))) or None
+        fix = "give --work on another filesystem"
+    elif by_out:
+        place, need, fix = f"finalize writes the new store for --out {out}", store_need, "choose another --out"
+    elif phase == "finalize":
+        place, need = f"finalize builds the new store in --work {work} before renaming it over --out", store_need
+        fix = "give --work on another filesystem"
+    else:
+        place, need, fix = f"the work directory --work {work} (its lock and the stage cache)", None, \
+            "give --work elsewhere"
+    where = at or (cache.root if in_cache else (beside or out) if by_out else work)
+    if not total:
+        kept = "rerun the same command once this is fixed"
+    elif len(sizes) == total:
+        kept = f"all {total} cache entries are finished and kept in {cache.root}: rerun the same command to write " \
+               "the store from them"
+    else:
+        kept = f"{len(sizes)} of {total} cache entries are finished and kept in {cache.root}: rerun the same " \
+               "command to resume"
+    return environment_problem(e, where, place, need, fix, kept)
+
+
+def _entry_sizes(cache: Cache, shards: list[Shard]) -> tuple[dict[tuple[str, str], int], int]:
+    """The finished cache entries of the run's shards, (stage, key) -> bytes (0 when the cache is
+    remote), and how many entries the run needs in all; none found when the cache cannot be read."""
+    want = {(stage, key) for s in shards for stage, key in s.keys.items()}
+    try:
+        present = cache.entries() & want
+        if cache.remote:
+            return {k: 0 for k in present}, len(want)
+        return {k: Path(cache.path(*k)).stat().st_size for k in present}, len(want)
+    except OSError:
+        return {}, len(want)
 
 
 def _open_frames(conf: PipelineConfig, data_root: Path, limit: int | None) -> tuple[list[FrameRef], dict[str, Any]]:
