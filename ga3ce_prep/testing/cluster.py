@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -87,6 +88,13 @@ def free_port() -> int:
 def moto_s3(tmp: Path, timeout: float = 60.0) -> Iterator[dict[str, str]]:
     """moto's S3 server on 127.0.0.1; yields the environment that points s3fs (and every AWS
     client) at it with dummy credentials. Its log goes to tmp/moto.log."""
+    with moto_server(tmp, timeout) as (env, _):
+        yield env
+
+
+@contextmanager
+def moto_server(tmp: Path, timeout: float = 60.0) -> Iterator[tuple[dict[str, str], subprocess.Popen]]:
+    """`moto_s3`, with the server's process too (to freeze it: `frozen`)."""
     tmp.mkdir(parents=True, exist_ok=True)
     port = free_port()
     p = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
@@ -101,6 +109,24 @@ def moto_s3(tmp: Path, timeout: float = 60.0) -> Iterator[dict[str, str]]:
 
         _wait_for(up, "moto server", [p], timeout)
         yield {"AWS_ENDPOINT_URL_S3": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "testing",
-               "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1"}
+               "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1"}, p
     finally:
+        if p.poll() is None:
+            os.kill(p.pid, signal.SIGCONT)  # in case it is frozen
         _stop(p)
+
+
+def frozen(p: subprocess.Popen, after: float, seconds: float) -> threading.Thread:
+    """Freeze the process `p` (SIGSTOP: its sockets accept and answer nothing, as a hung endpoint)
+    `after` seconds from now for `seconds`, in a thread; join it to know the freeze is over."""
+    def freeze() -> None:
+        time.sleep(after)
+        os.kill(p.pid, signal.SIGSTOP)
+        try:
+            time.sleep(seconds)
+        finally:
+            os.kill(p.pid, signal.SIGCONT)
+
+    t = threading.Thread(target=freeze, daemon=True)
+    t.start()
+    return t
