@@ -41,7 +41,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 # for an OSError that names none (a full disk's write(2) does not); what it is; what is kept and
 # how to go on once that is fixed. `run` says it all itself, with the figures of its cache.
 WRITES: dict[str, tuple[str | int, str, str]] = {
-    "run": ("--out", "the store", "finished cache entries are kept: rerun the same command to resume"),
+    "run": ("--out", "the store", "what is finished is kept: rerun the same command once this is fixed"),
     "train": ("--out", "the run folder's checkpoints and history.csv", "the epochs finished so far are kept in "
               "the run folder (last.pt, history.csv): rerun with --resume to continue"),
     "ablate": ("--out", "the ablation's run folders", "finished rows are kept: rerun the same command to continue"),

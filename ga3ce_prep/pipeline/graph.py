@@ -146,7 +146,7 @@ def _execute_distributed(env: TaskEnv, tasks: list[Delayed], bars: _Bars, worker
                 warnings.simplefilter("ignore")
                 cluster = stack.enter_context(LocalCluster(
                     n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
-                    silence_logs=logging.ERROR))
+                    silence_logs=logging.CRITICAL))  # a task's exception reaches the driver, which says it once
             client = stack.enter_context(Client(cluster))
         if workers:
             client.wait_for_workers(int(workers))

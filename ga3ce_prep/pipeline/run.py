@@ -294,20 +294,25 @@ def _work_dir(work_dir: str | Path | None, out: Location) -> Location:
 def _write_problem(e: OSError, phase: str, work: Location, out: Location, cache: Cache,
                    shards: list[Shard]) -> EnvironmentProblem | None:
     """A write the machine refused (errors.environment_problem; None: a bug) as one line: the place
-    (the stage cache, the work directory, or where finalize builds the store), what the run needs
-    there (for a full disk about how much: the entries still to write at the mean size of those
-    written, or the store at the size of the entries it is made of), the fix, and what is kept.
-    The place is the path in the exception, else the phase the run was in ("work", "cache",
-    "finalize")."""
+    (the stage cache, the work directory, the output's lock, or where finalize builds the store),
+    what the run needs there (for a full disk about how much: the entries still to write at the
+    mean size of those written, or the store at the size of the entries it is made of), the fix,
+    and what is kept. The place is the path in the exception, else the phase the run was in
+    ("work", "cache", "finalize")."""
     at = str(e.filename) if e.filename is not None else ""
     sizes, total = _entry_sizes(cache, shards)
     per = sum(sizes.values()) / len(sizes) if sizes else 0
     store = [n for (stage, _), n in sizes.items() if stage != "depth"]  # depth maps stay out of the store
     store_need = int(sum(store) / len(store) * (total - len(shards))) if store else None
-    in_cache = at.startswith(str(cache.root)) if at else phase == "cache"
+    def under(root: Location) -> bool:
+        return at == str(root) or at.startswith(f"{root}/")
+
+    in_cache = under(cache.root) if at else phase == "cache"
     beside = None if is_remote(out) else Path(f"{out}.finalize")  # finalize.scratch_dir: building beside --out
-    by_out = at.startswith(str(out)) if at else phase == "finalize" and (beside is None or beside.exists())
-    if in_cache:
+    by_out = under(out) or under(beside) if at else phase == "finalize" and (beside is None or beside.exists())
+    if at == f"{out}.lock":
+        place, need, fix = f"the output's lock file beside --out {out}", None, "choose another --out"
+    elif in_cache:
         place, need = f"the stage cache in --work {work}: {total - len(sizes)} entries still to write", \
             int(per * (total - len(sizes))) or None
         fix = "give --work on another filesystem"
