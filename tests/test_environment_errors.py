@@ -217,3 +217,16 @@ def test_a_refused_checkpoint_keeps_the_finished_epochs_and_resume_gives_the_cle
     assert code == 0, err
     got, clean = (load_checkpoint(r / "last.pt")["model"] for r in (run, tmp_path / "clean"))
     assert all(torch.equal(got[k], clean[k]) for k in clean)
+
+
+@pytest.mark.parametrize("args, place", [
+    (["eval", "--store", "s.zarr", "--checkpoint", "b.pt", "--json", "/share/eval.json"], "/share/eval.json"),
+    (["report", "runs/a", "--out=/share/page"], "/share/page"),
+    (["export", "s.zarr", "/share/s.h5"], "/share/s.h5"),
+    (["predict", "-i", "p.jpg", "-o", "/share/p.png"], "/share/p.png"),
+])
+def test_every_command_names_the_place_it_writes_when_the_disk_is_full(args, place):
+    from ga3ce_prep.cli import _refused
+
+    line = str(_refused(OSError(errno.ENOSPC, "No space left on device"), args))
+    assert line.startswith(f"{place}: no space left") and "rerun the command" in line, line
