@@ -272,8 +272,9 @@ def test_io_binding_gives_the_plain_paths_masks(monkeypatch):
 
 
 def test_built_models_are_checked(tmp_path):
-    """The build's check refuses a decoder with one weight changed and an encoder with another's
-    weights: the files the tests run are the reference export's, not merely files that load."""
+    """The build's check refuses a decoder with one weight changed, an encoder with another's
+    weights and a checkpoint with one weight changed: the files the tests run are the reference
+    export's, not merely files that load."""
     mobilesam_random.verify(ENC.parent)   # what ensure() built passes
     m = onnx.load(str(DEC))
     t = next(t for t in m.graph.initializer if numpy_helper.to_array(t).size > 100)
@@ -292,4 +293,13 @@ def test_built_models_are_checked(tmp_path):
     (tmp_path / mobilesam_random.ENCODER).unlink()
     onnx.save(m, str(tmp_path / mobilesam_random.ENCODER))
     with pytest.raises(RuntimeError, match="outputs differ"):
+        mobilesam_random.verify(tmp_path)
+    (tmp_path / mobilesam_random.ENCODER).unlink()
+    (tmp_path / mobilesam_random.ENCODER).symlink_to(ENC)
+    import torch
+
+    state = torch.load(ENC.parent / mobilesam_random.CHECKPOINT, weights_only=True)
+    state["mask_decoder.iou_token.weight"][0, 0] += 1e-3
+    torch.save(state, tmp_path / mobilesam_random.CHECKPOINT)
+    with pytest.raises(RuntimeError, match="tensor digest"):
         mobilesam_random.verify(tmp_path)

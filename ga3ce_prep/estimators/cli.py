@@ -1,6 +1,7 @@
 """`ga3ce-prep export-mobilesam`: a trained MobileSAM checkpoint -> the two ONNX files the
 `objects/mobilesam` backend reads. It imports the MobileSAM code the user has installed (the official
-repository, or the `mobilesam-mirror` package) and torch; none of that code is part of ga3ce-prep.
+repository, or the `mobilesam-mirror` package), or the private copy of segment/mobilesam_code.py, and
+torch; none of that code is part of ga3ce-prep.
 
 `ga3ce-prep export-gfie-view`: GFIE's checkpoint -> its head network as one ONNX file for
 `view/onnx` (the network is ours, estimators/view/gfie_head.py; only torch is needed)."""
@@ -16,13 +17,14 @@ DECODER_NAME = "mobile_sam_decoder.onnx"
 
 
 def _import_mobile_sam():
+    from .segment.mobilesam_code import FIX, import_mobile_sam
+
     try:
-        from mobile_sam import sam_model_registry
+        sam_model_registry = import_mobile_sam().sam_model_registry
         from mobile_sam.utils.onnx import SamOnnxModel
     except ImportError as e:
         raise click.ClickException(
-            f"export-mobilesam needs the official MobileSAM code and timm ({e}): "
-            "pip install timm mobilesam-mirror  "
+            f"export-mobilesam needs the official MobileSAM code and timm ({e}): {FIX} "
             "(or: pip install timm git+https://github.com/ChaoningZhang/MobileSAM)") from e
     return sam_model_registry, SamOnnxModel
 

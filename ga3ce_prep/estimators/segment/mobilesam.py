@@ -19,6 +19,10 @@ weights, whichever way the file was exported) or the official graph (`decoder_mo
 call per prompt unless its batch axis is dynamic; the masks the file exports per prompt); both are a
 `MaskDecoder`. Each crop's steps run through a `CropPlan`: the exact generator's `EXACT` (every
 prompt), or reuse.SequenceReuse (reuse across the frames of a static camera).
+
+The same generator runs on a second runtime, `MobileSamSegmenter.from_checkpoint` (`runtime: torch`,
+mobilesam_torch.py): MobileSAM's own torch modules read from the official checkpoint `mobile_sam.pt`,
+on the CPU or a CUDA device, as the encoder and `MaskDecoder` it calls.
 """
 from __future__ import annotations
 
@@ -418,19 +422,45 @@ class SegmenterOptions(amg.AmgOptions, RuntimeParams):
         # kept on the device between its graphs; auto: with the CUDA provider; on: also on CPU
         # (for testing; same masks); off: batches of 8 (CPU) or 64 prompts, outputs through host memory
         "auto")
+    runtime: Literal["onnx", "torch"] = (
+        # onnx: the encoder and decoder ONNX files through ONNX Runtime (providers, decoder_mode, io_binding);
+        # torch: MobileSAM's own modules read from the official checkpoint mobile_sam.pt, on `device`
+        # (needs MobileSAM's code: python -m ga3ce_prep.estimators.segment.mobilesam_code); same masks
+        "onnx")
+    device: Literal["cpu", "cuda"] = "cpu"  # runtime torch: the torch device (cuda: all prompts of a crop in one batch)
+
+    def check_runtime(self) -> None:
+        """ConfigError when an option of one runtime is set for the other (one way to say each thing)."""
+        if self.runtime not in ("onnx", "torch"):
+            raise ConfigError(f"runtime must be onnx or torch, got {self.runtime!r}")
+        if self.runtime == "onnx" and self.device != "cpu":
+            raise ConfigError(f"device: {self.device} is the torch runtime's: set runtime: torch (with checkpoint), "
+                              f"or providers: {self.device} for ONNX Runtime")
+        if self.runtime == "torch":
+            onnx_only = {"providers": self.providers != "cpu", "decoder_mode": self.decoder_mode != "fast",
+                         "io_binding": self.io_binding != "auto"}
+            if any(onnx_only.values()):
+                raise ConfigError(f"runtime: torch runs the checkpoint's own modules on `device`; leave out "
+                                  f"{', '.join(k for k, v in onnx_only.items() if v)} (ONNX Runtime's options)")
 
 
 class MobileSamSegmenter:
-    """segment-anything's automatic mask generator with MobileSAM's ONNX files.
+    """segment-anything's automatic mask generator on one of two runtimes: MobileSAM's ONNX files
+    through ONNX Runtime (the constructor) or the official checkpoint through torch
+    (`from_checkpoint`, mobilesam_torch.py). The runtime is the encoder (`embed`) and the
+    `MaskDecoder` the generator calls; everything else is the same code.
 
     encoder: the image encoder ONNX path.
     decoder: the prompt encoder + mask decoder ONNX path.
-    options: SegmenterOptions (generator, runtime, decoder mode).
+    options: SegmenterOptions (generator, ONNX Runtime settings, decoder mode; runtime onnx).
     verify: on load, check the fast decoder against the official graph on a few prompts and refuse
       a mismatch (catches an export whose weights were read wrongly)."""
 
     def __init__(self, encoder: str | Path, decoder: str | Path, options: SegmenterOptions = SegmenterOptions(),
                  verify: bool = True):
+        if options.runtime != "onnx":
+            raise ConfigError(f"runtime: {options.runtime} reads a checkpoint: MobileSamSegmenter.from_checkpoint")
+        options.check_runtime()
         decoder_mode, threads = options.decoder_mode, options.threads
         if decoder_mode not in ("fast", "official"):
             raise ModelFileError(f"decoder_mode must be 'fast' or 'official', got {decoder_mode!r}")
@@ -463,6 +493,30 @@ class MobileSamSegmenter:
             if verify:
                 self.verify()
 
+    @classmethod
+    def from_checkpoint(cls, checkpoint: str | Path, options: SegmenterOptions) -> MobileSamSegmenter:
+        """The generator on the torch runtime: MobileSAM's modules with the official checkpoint's
+        weights (`mobile_sam.pt`) on options.device (options.runtime "torch"; options.threads:
+        torch's intra-op threads, process-wide). ModelFileError / ConfigError naming the checkpoint and
+        the fix when it or MobileSAM's code is missing, or when CUDA is asked for and absent."""
+        import torch
+
+        from .mobilesam_torch import TorchDecoder, TorchEncoder, load_sam
+
+        if options.runtime != "torch":
+            raise ConfigError("from_checkpoint runs runtime: torch; set it in the options")
+        options.check_runtime()
+        sam = load_sam(checkpoint, options.device)
+        torch.set_num_threads(int(options.threads))
+        self = cls.__new__(cls)
+        self.options = options
+        self.checkpoint = Path(checkpoint)
+        self.encoder, self.decoder = TorchEncoder(sam, options.device), TorchDecoder(sam, options.device)
+        self.official = None
+        self._lock = threading.Lock()
+        self._pool = None
+        return self
+
     @property
     def mask_mode(self) -> Literal["multimask", "single-mask"]:
         """"multimask" (3 candidates per grid point) or "single-mask" (the file's one mask per point)."""
@@ -470,6 +524,9 @@ class MobileSamSegmenter:
 
     def provenance(self) -> dict:
         """Backend parameters, model hashes and the mask mode for the store's provenance."""
+        if self.options.runtime == "torch":
+            return {"checkpoint": str(self.checkpoint), "checkpoint_sha256": file_sha256(self.checkpoint),
+                    "mask_mode": self.mask_mode, **self.options.to_dict()}
         return {"encoder": str(self.encoder_path), "encoder_sha256": file_sha256(self.encoder_path),
                 "decoder": str(self.decoder_path), "decoder_sha256": file_sha256(self.decoder_path),
                 "mask_mode": self.mask_mode, **self.options.to_dict(), "providers": self.providers}
@@ -477,7 +534,10 @@ class MobileSamSegmenter:
     def verify(self, n_prompts: int = 3, atol: float = 1e-3) -> float:
         """Compare the fast decoder with the official graph on a random embedding (single-point
         prompts; a single-mask graph against the token it exports, `exported_token`); returns the max
-        abs difference of IoU predictions and low-res logits, raises ModelFileError above atol."""
+        abs difference of IoU predictions and low-res logits, raises ModelFileError above atol.
+        The ONNX runtime only (the torch runtime runs the checkpoint's own modules)."""
+        if self.official is None:
+            raise ConfigError("verify() compares the fast decoder with the decoder ONNX: runtime onnx only")
         rng = np.random.default_rng(0)
         emb = rng.standard_normal(EMBEDDING_SHAPE).astype(np.float32)
         coords, labels = single_point_prompts(rng.uniform(0, IMG_SIZE, (n_prompts, 2)))
