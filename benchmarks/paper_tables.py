@@ -17,7 +17,7 @@ of worlds whose seeds were drawn after those choices, and the transfer world.
 
   choose worlds: seen (32 rooms x 4 sessions x 12 frames, seed 201), unseen (48 rooms x 60 frames,
                  seed 0: the demo's world until 2026-12-05)
-  report worlds: demo (48 x 4 x 15, seed 8001), large (60 x 5 x 20 = 6,000 frames, seed 8002)
+  report worlds: demo (48 x 4 x 15, seed 0: make demo's world), large (60 x 5 x 20 = 6,000 frames, seed 8002)
   transfer:      16 rooms x 40 frames, seed 8101 (--phase report only)
 
 Usage:
@@ -70,7 +70,7 @@ class World:
 
 WORLDS = {
     "choose": {"seen": World(32, 4, 12, 201), "unseen": World(48, 1, 60, 0)},
-    "report": {"demo": World(48, 4, 15, 8001), "large": World(60, 5, 20, 8002)},
+    "report": {"demo": World(48, 4, 15, 0), "large": World(60, 5, 20, 8002)},
 }
 TRANSFER = World(16, 1, 40, 8101, preset="transfer")
 
