@@ -2,7 +2,8 @@
 that imports it back. Read with `ast`, not by importing: every intra-package import counts, at module
 level and inside functions alike (a function-level import is a cycle that waits for its first
 call), and importing a submodule counts as importing its packages too (Python runs their
-__init__.py first). Only `if TYPE_CHECKING:` blocks are left out: they never run.
+__init__.py first). Only `if TYPE_CHECKING:` blocks are left out: they never run; model/, where a
+type-only loop once hid (ga3ce.py <-> methods.py), is also checked with them in.
 
 estimators/ holds its families only (segment, pose, view, depth, runtime; estimators/__init__.py),
 and a family imports no other family but runtime/, the layer they share."""
@@ -33,12 +34,13 @@ def _type_checking_blocks(tree: ast.AST) -> set[int]:
     return skip
 
 
-def imported_names(name: str, path: Path) -> set[str]:
+def imported_names(name: str, path: Path, type_only: bool = False) -> set[str]:
     """The dotted names module `name` imports anywhere in its file (relative ones resolved), each
-    as the most specific name `from X import y` can mean (X.y for a submodule y, else X)."""
+    as the most specific name `from X import y` can mean (X.y for a submodule y, else X);
+    type_only: `if TYPE_CHECKING:` imports too."""
     tree = ast.parse(path.read_text(), str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    skip = _type_checking_blocks(tree)
+    skip = set() if type_only else _type_checking_blocks(tree)
     out: set[str] = set()
     for node in ast.walk(tree):
         if id(node) in skip:
@@ -55,13 +57,13 @@ def imported_names(name: str, path: Path) -> set[str]:
     return out
 
 
-def import_graph() -> dict[str, set[str]]:
+def import_graph(type_only: bool = False) -> dict[str, set[str]]:
     """module -> the package's modules it imports: each name cut back to the module that holds it,
     plus that module's packages, except the importer's own (they are already being imported)."""
     mods = modules()
     graph: dict[str, set[str]] = {m: set() for m in mods}
     for m, path in mods.items():
-        for target in imported_names(m, path):
+        for target in imported_names(m, path, type_only):
             if target.split(".")[0] != PACKAGE.name:
                 continue
             while target not in mods:
@@ -97,6 +99,14 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_package_has_no_import_cycle():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_model_has_no_import_cycle_even_type_only():
+    model = "ga3ce_prep.model."
+    graph = {m: {t for t in ts if t.startswith(model)} for m, ts in import_graph(type_only=True).items()
+             if m.startswith(model)}
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle (type-only imports included): " + " -> ".join(cycle)
 
 
 def test_estimators_holds_its_families_only():

@@ -2,9 +2,9 @@
 the MLP head, one concept per module under its paper name (docs/paper.md)."""
 from .egocentric import EgocentricContext, egocentric_transform, pose_normalization
 from .encoding import ENCODINGS, PointEncoding, d3_encoding, fourier_features
-from .ga3ce import GA3CE, ModelConfig
+from .ga3ce import GA3CE, ModelConfig, model_label
 from .loss import angular_loss
-from .methods import DEFAULT_METHOD, METHODS, Method, model_label
+from .methods import DEFAULT_METHOD, METHODS, Method
 from .rotation import ROTATIONS, axis_angle_rotation, cyclotorsion_rotation, identity_rotation, rotation
 from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
 

@@ -24,7 +24,7 @@ from torch import nn
 from ..skeleton import GA3CE_JOINTS, HEAD_WIDTH_PAIR
 from .egocentric import egocentric_transform
 from .encoding import ENCODINGS, PointEncoding
-from .methods import DEFAULT_METHOD, METHODS
+from .methods import DEFAULT_METHOD, METHODS, NO_OBJECTS_LABEL
 from .rotation import ROTATIONS
 from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
 
@@ -143,6 +143,25 @@ class ModelConfig:
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}")
         return cls(**d)
+
+
+# the design switches a label names
+SWITCHES = ("output", "pointer_g0", "rotation", "encoding", "use_pose", "cone_bias")
+APPEARANCE_LABEL = "appearance only (v)"
+
+
+def model_label(config: ModelConfig) -> str:
+    """A config's name in tables: its method's label, or the ablation that leaves the objects or the
+    whole context out (the same network whichever method it came from); a design switch that
+    differs from the method's own value is named after it ("GA3CE (paper), use_pose=False"). Sizes
+    and scales do not rename a model."""
+    if not config.use_context:
+        return APPEARANCE_LABEL
+    if not config.use_objects:
+        return NO_OBJECTS_LABEL
+    own = type(config).for_method(config.method)
+    changed = [f"{k}={getattr(config, k)}" for k in SWITCHES if getattr(config, k) != getattr(own, k)]
+    return ", ".join([METHODS[config.method].label, *changed])
 
 
 class GA3CE(nn.Module):

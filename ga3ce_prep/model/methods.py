@@ -11,15 +11,13 @@
   docs/training.md, "The output").
 
 A method is a set of ModelConfig values (`ModelConfig.for_method(name)` builds it); an ablation
-(train/ablate.py) switches parts of it off. `model_label` names any config for the printed tables.
+(train/ablate.py) switches parts of it off. `model_label` (model/ga3ce.py, beside ModelConfig) names
+any config for the printed tables; this module imports nothing of the model's.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from .ga3ce import ModelConfig
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -43,20 +41,3 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 )}
 DEFAULT_METHOD = "ga3ce"
 NO_OBJECTS_LABEL = "no objects (app. + pose)"
-# the design switches a label names
-SWITCHES = ("output", "pointer_g0", "rotation", "encoding", "use_pose", "cone_bias")
-APPEARANCE_LABEL = "appearance only (v)"
-
-
-def model_label(config: ModelConfig) -> str:
-    """A config's name in tables: its method's label, or the ablation that leaves the objects or the
-    whole context out (the same network whichever method it came from); a design switch that
-    differs from the method's own value is named after it ("GA3CE (paper), use_pose=False"). Sizes
-    and scales do not rename a model."""
-    if not config.use_context:
-        return APPEARANCE_LABEL
-    if not config.use_objects:
-        return NO_OBJECTS_LABEL
-    own = type(config).for_method(config.method)
-    changed = [f"{k}={getattr(config, k)}" for k in SWITCHES if getattr(config, k) != getattr(own, k)]
-    return ", ".join([METHODS[config.method].label, *changed])
