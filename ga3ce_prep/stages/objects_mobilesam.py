@@ -23,7 +23,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ..errors import ConfigError
-from ..estimators.segment.mobilesam import SegmenterOptions
+from ..estimators.segment.mobilesam_runners import SegmenterOptions
 from ..estimators.segment.reuse import FrameCues, ReuseParams, SequenceReuse
 from ..frames import FrameRef, load_rgb
 from ..params import param
@@ -113,7 +113,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             load_sam(*self.model_files(), "cpu")
             return
         from ..estimators.runtime.onnx_runtime import resolve_providers
-        from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder
+        from ..estimators.segment.mobilesam_runners import ImageEncoder, OfficialDecoder
 
         providers = resolve_providers(self.p.providers)
         enc, dec = self.model_files()
@@ -126,7 +126,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         export's graph),
         and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
         from ..estimators.runtime.onnx_runtime import resolve_providers
-        from ..estimators.segment.mobilesam import OfficialDecoder, mask_mode
+        from ..estimators.segment.mobilesam_runners import OfficialDecoder, mask_mode
         from ..files import file_sha256
 
         files = self.model_files()

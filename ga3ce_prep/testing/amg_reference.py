@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..estimators.segment import amg
-from ..estimators.segment.mobilesam import ImageEncoder, OfficialDecoder, StepTimer, single_point_prompts
+from ..estimators.segment.amg import StepTimer
+from ..estimators.segment.mobilesam_runners import ImageEncoder, OfficialDecoder, single_point_prompts
 
 
 @dataclass

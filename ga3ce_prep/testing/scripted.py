@@ -24,7 +24,7 @@ from onnx import TensorProto
 
 from ..estimators.runtime.onnx_graph import GraphBuilder
 from ..estimators.segment.amg import preprocess_shape
-from ..estimators.segment.mobilesam import PIXEL_MEAN, PIXEL_STD
+from ..estimators.segment.mobilesam_runners import PIXEL_MEAN, PIXEL_STD
 
 
 def _pool_to_embedding(g: GraphBuilder, x: str) -> str:

@@ -11,6 +11,11 @@ candidates flow through these steps as one columnar `MaskRecords` (the reference
 from __future__ import annotations
 
 import math
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 
 import cv2
@@ -275,3 +280,56 @@ def upscale_logits(low_res: np.ndarray, orig_hw: tuple[int, int], out_hw: tuple[
         up = cv2.resize(part, (rw * f, rh * f), interpolation=cv2.INTER_LINEAR)
         out[i] = cv2.resize(up[:newh, :neww], (out_w, out_h), interpolation=cv2.INTER_LINEAR)
     return out
+
+
+@dataclass(frozen=True)
+class Crop:
+    """One crop of the generator (`crop_boxes`): its index, box XYXY in image pixels, layer, and the
+    image's (h, w)."""
+
+    index: int
+    box: tuple[int, int, int, int]
+    layer: int
+    image_hw: tuple[int, int]
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return self.box[3] - self.box[1], self.box[2] - self.box[0]
+
+    def output_box(self, out_hw: tuple[int, int]) -> tuple[int, int, int, int]:
+        """The box XYXY at the output resolution (the whole output for the full-image crop)."""
+        if self.hw == self.image_hw:
+            return 0, 0, out_hw[1], out_hw[0]
+        sy, sx = out_hw[0] / self.image_hw[0], out_hw[1] / self.image_hw[1]
+        x0, y0, x1, y1 = self.box
+        return int(round(x0 * sx)), int(round(y0 * sy)), int(round(x1 * sx)), int(round(y1 * sy))
+
+    def mask(self, low_res: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+        """(256, 256) logits of a mask decoded in this crop -> (out_h, out_w) bool: the decoder's
+        postprocessing straight into the crop's box at the output resolution, thresholded at 0."""
+        x0, y0, x1, y1 = self.output_box(out_hw)
+        out = np.zeros(out_hw, bool)
+        out[y0:y1, x0:x1] = upscale_logits(low_res[None], self.hw, (y1 - y0, x1 - x0))[0] > 0.0
+        return out
+
+
+class StepTimer:
+    """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`; a step
+    None is not timed."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def __call__(self, step: str | None) -> Iterator[None]:
+        if step is None:
+            yield
+            return
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t0
+            with self._lock:
+                self.seconds[step] += dt

@@ -71,7 +71,7 @@ def use_io_binding(setting: Literal["auto", "on", "off"], providers: Sequence[st
 
 
 class FastDecoder:
-    """The restructured decoder on ONNX Runtime, a `mobilesam.MaskDecoder`: `set_image` once per image,
+    """The restructured decoder on ONNX Runtime, a `mobilesam_runners.MaskDecoder`: `set_image` once per image,
     then `predict_iou` for a batch of prompts and `low_res_masks` / `candidate_masks` for the prompts
     whose candidates are wanted.
 

@@ -5,10 +5,11 @@ the CPU or a CUDA device.
 The model is the official `vit_t` (MobileSAM's `mobile_sam` package, mobilesam_code.py) with the
 checkpoint's state dict loaded strictly, then `eval()` (after loading: TinyViT caches its attention
 biases in eval()). `TorchEncoder` feeds the image encoder the ONNX path's input (Pillow resize,
-normalise, pad: mobilesam.resize_longest_side, normalise_and_pad); `TorchDecoder` is a
-`mobilesam.MaskDecoder`: the prompt encoder on the generator's (point, padding point) prompts as
+normalise, pad: mobilesam_runners.resize_longest_side, normalise_and_pad); `TorchDecoder` is a
+`mobilesam_runners.MaskDecoder`: the prompt encoder on the generator's (point, padding point) prompts as
 the ONNX export embeds them, and the mask decoder's `predict_masks` (all 4 tokens), so the
-generator's candidates, filters, NMS, crops and reuse are those of the ONNX path.
+generator's candidates, filters, NMS, crops and reuse are those of the ONNX path. `open_torch`
+opens both for `MobileSamSegmenter.from_checkpoint`.
 
 Batching: on CUDA the generator hands all prompts of a crop to one `predict_iou` (`batch_size`
 None), which runs them through the decoder `CUDA_CHUNK` at a time and keeps their low-resolution
@@ -24,8 +25,8 @@ import numpy as np
 
 from ...errors import ConfigError, ModelFileError
 from .amg import MULTIMASK_TOKENS
-from .mobilesam import _check_rgb, normalise_and_pad, resize_longest_side
 from .mobilesam_code import FIX
+from .mobilesam_runners import check_rgb, normalise_and_pad, resize_longest_side
 
 
 def check_device(device: str) -> None:
@@ -68,7 +69,7 @@ def load_sam(checkpoint: str | Path, device: Literal["cpu", "cuda"] = "cpu"):
 
 
 class TorchEncoder:
-    """The checkpoint's image encoder: `embed` as mobilesam.ImageEncoder's.
+    """The checkpoint's image encoder: `embed` as mobilesam_runners.ImageEncoder's.
 
     sam: the module `load_sam` returns; device: where it lives."""
 
@@ -79,13 +80,13 @@ class TorchEncoder:
         """(H, W, 3) uint8 RGB -> image_embeddings (1, 256, 64, 64) float32 (host)."""
         import torch
 
-        x = normalise_and_pad(resize_longest_side(_check_rgb(rgb)))
+        x = normalise_and_pad(resize_longest_side(check_rgb(rgb)))
         with torch.inference_mode():
             return self.sam.image_encoder(torch.from_numpy(x).to(self.device)).float().cpu().numpy()
 
 
 class TorchDecoder:
-    """The checkpoint's prompt encoder and mask decoder, a `mobilesam.MaskDecoder` (multimask:
+    """The checkpoint's prompt encoder and mask decoder, a `mobilesam_runners.MaskDecoder` (multimask:
     candidates are tokens 1..3). The state of a `predict_iou` batch is its low-resolution logits
     (B, 4, 256, 256) on the device.
 
@@ -147,3 +148,14 @@ class TorchDecoder:
         p = torch.as_tensor(np.asarray(prompt, np.int64), device=state.device)
         t = torch.as_tensor(np.asarray(token, np.int64), device=state.device)
         return state[p, t].float().cpu().numpy()
+
+
+def open_torch(checkpoint: str | Path, device: Literal["cpu", "cuda"],
+               threads: int) -> tuple[TorchEncoder, TorchDecoder]:
+    """The torch runtime's runners on `device`: `load_sam` (ModelFileError / ConfigError naming the
+    checkpoint and the fix), then torch's intra-op threads set process-wide to `threads`."""
+    import torch
+
+    sam = load_sam(checkpoint, device)
+    torch.set_num_threads(threads)
+    return TorchEncoder(sam, device), TorchDecoder(sam, device)
