@@ -183,7 +183,7 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
         if not run_done(run, epochs):
             train(cfg, resume=(run / "last.pt").exists())
         r = evaluate(store, run / "best.pt", split=split, cdf_path=None, no_objects=None, compare={}, force=other_store)
-    return r["methods"]["model"]["mae3d"], r["methods"]["view_prior"]["mae3d"]
+    return r.methods["model"].mae3d, r.methods["view_prior"].mae3d
 
 
 @click.command(help=__doc__)

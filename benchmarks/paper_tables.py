@@ -96,8 +96,8 @@ def transfer_table(store: Path, runs: Path, rows: list[str]) -> dict[str, list[f
             with cpu_lock():
                 r = evaluate(store, runs / name / f"seed{k}" / "best.pt", split="test", cdf_path=None,
                              no_objects=None, compare={})
-            maes.append(r["methods"]["model"]["mae3d"])
-            out["v prior"] = [r["methods"]["view_prior"]["mae3d"]]
+            maes.append(r.methods["model"].mae3d)
+            out["v prior"] = [r.methods["view_prior"].mae3d]
         out[name] = maes
     return out
 

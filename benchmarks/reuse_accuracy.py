@@ -93,7 +93,7 @@ def seed_run(store: Path, other: Path, run: Path, seed: int, threads: int, keep_
 
     def mae(st: Path, ckpt: str, **kw) -> float:
         r = evaluate(st, run / ckpt, cdf_path=None, no_objects=None, threads=threads, **kw)
-        return r["methods"]["model"]["mae3d"]
+        return r.methods["model"].mae3d
 
     result = {"best": mae(store, "best.pt"), "swapped": mae(other, "best.pt", force=True),
               "last": mae(store, "last.pt")}

@@ -113,23 +113,23 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
         click.echo(format_eval_table(transfer, per_scene=False))
         _done(t0)
 
-    labels = result["labels"]
+    labels = result.labels
     notes = {"model": METHODS["ga3ce"].summary, "ours": f"our design: {METHODS['ours'].summary}",
              "no_objects": "the same network without the objects (the paper's appearance + pose row)",
              **BASELINE_NOTES}
     click.echo("\nthe rows:")
-    for key in result["methods"]:
+    for key in result.methods:
         click.echo(f"  {labels[key]:26s} {notes[key]}")
     click.echo(f"\n3D MAE (deg)               {'seen rooms':>10s} {'transfer':>9s}")
     for key in ("model", "ours", "no_objects", "view_prior"):
-        other = f"{transfer['methods'][key]['mae3d']:9.2f}" if transfer else f"{'-':>9s}"
-        click.echo(f"  {labels[key]:24s} {result['methods'][key]['mae3d']:10.2f} {other}")
-    m = {k: v["mae3d"] for k, v in result["methods"].items()}
+        other = f"{transfer.methods[key].mae3d:9.2f}" if transfer is not None else f"{'-':>9s}"
+        click.echo(f"  {labels[key]:24s} {result.methods[key].mae3d:10.2f} {other}")
+    m = {k: v.mae3d for k, v in result.methods.items()}
     click.secho(f"seen rooms = the test sessions of rooms recorded in training (the paper's GFIE protocol: no "
                 f"objects 13.1 -> GA3CE 11.1, v prior 19.4); transfer = unseen rooms and another camera "
                 f"(its Table 2). The paper's GA3CE {'beats' if m['model'] < m['no_objects'] else 'does NOT beat'} "
                 f"its no-objects ablation on the seen rooms here.", bold=True)
-    click.echo(f"angular-error CDF: {result['cdf_png']}")
+    click.echo(f"angular-error CDF: {result.cdf_png}")
     click.echo(f"total {time.perf_counter() - t_all:.0f} s. Next: ga3ce-prep info {store} | "
                f"ga3ce-prep show {store} <frame id> --out frame.png")
 

@@ -49,13 +49,13 @@ def test_eval_scores_the_datasets_test_rows_through_the_fallback(holed, tmp_path
     world, store, ckpt = holed
     rows = (world / "test_annotation.txt").read_text().strip().splitlines()[1:]
     r = evaluate(store, ckpt, split="test", cdf_path=None, json_path=tmp_path / "e.json")
-    fr = r["frames"]
-    assert fr["protocol"] == "all" and fr["expected"] == len(rows) == 4   # every row of the test file
-    assert fr["scored"] == r["n_frames"] == 3
-    assert fr["unscored"] == {"dropped by the input stage (FrameError)": ["test/scene1/0002"]}
-    assert r["head_sources"] == {"measured": 1, "pose_depth": 2}         # pinned: 2 scored through the fallback
-    assert r["head_fallback_frames"] == 2
-    assert json.loads((tmp_path / "e.json").read_text())["frames"]["unscored"] == fr["unscored"]
+    fr = r.frames
+    assert fr.protocol == "all" and fr.expected == len(rows) == 4   # every row of the test file
+    assert fr.scored == r.n_frames == 3
+    assert fr.unscored == {"dropped by the input stage (FrameError)": ["test/scene1/0002"]}
+    assert r.head_sources == {"measured": 1, "pose_depth": 2}         # pinned: 2 scored through the fallback
+    assert r.head_fallback_frames == 2
+    assert json.loads((tmp_path / "e.json").read_text())["frames"]["unscored"] == fr.unscored
     table = format_eval_table(r)
     assert "scored 3 of 4 test frames: every frame of the split" in table
     assert "1 not scored: dropped by the input stage (FrameError) (e.g. test/scene1/0002)" in table
@@ -75,14 +75,14 @@ def test_eval_names_frames_the_run_never_read_and_works_from_a_moved_dataset(hol
     with pytest.raises(Exception, match="windows need the dataset's frames"):
         evaluate(tmp_path / "lim.zarr", ckpt, force=True, cdf_path=None, frames="windows")
     r = evaluate(tmp_path / "lim.zarr", ckpt, force=True, cdf_path=None)   # the store alone: its frames
-    assert (r["frames"]["expected"], r["frames"]["scored"]) == (2, 2)
-    assert r["frames"]["source"].startswith("the store's frames")
+    assert (r.frames.expected, r.frames.scored) == (2, 2)
+    assert r.frames.source.startswith("the store's frames")
     r = evaluate(tmp_path / "lim.zarr", ckpt, force=True, cdf_path=None, data=world)
-    fr = r["frames"]
+    fr = r.frames
     order = [f.id for f in open_dataset("gfie", world).frames() if f.split == "test"]
     assert order[-2:] == ["test/scene1/0002", "test/scene1/0003"]          # the adapter's last two rows
-    assert (fr["expected"], fr["scored"]) == (4, 2)
-    assert fr["unscored"] == {f"not read by the run (--limit {n - 2})": order[-2:]}
+    assert (fr.expected, fr.scored) == (4, 2)
+    assert fr.unscored == {f"not read by the run (--limit {n - 2})": order[-2:]}
 
 
 def test_gafa_window_rule_on_frame_numbers_with_gaps():
@@ -150,26 +150,26 @@ def test_gafa_eval_prints_table_3_per_scene_over_gafa_windows(gafa_store):
     frames = [f for f in open_dataset("gafa", world).frames() if f.split == "test"]
     chosen, front = gafa_windows(frames)
     r = evaluate(store, ckpt, cdf_path=None)
-    fr = r["frames"]
-    assert fr["protocol"] == "windows"
-    assert fr["expected"] == len(chosen) == 14 * len({f.sequence for f in chosen}) < fr["split_rows"] == len(frames)
-    assert fr["scored"] == r["n_frames"] == len(chosen) - 5                  # pinned: 5 with an empty head box
-    assert list(fr["unscored"]) == ["dropped by the input stage (FrameError)"]
-    assert r["scene_columns"] == ["Office", "Living room", "Kitchen", "Library", "Courtyard"]
+    fr = r.frames
+    assert fr.protocol == "windows"
+    assert fr.expected == len(chosen) == 14 * len({f.sequence for f in chosen}) < fr.split_rows == len(frames)
+    assert fr.scored == r.n_frames == len(chosen) - 5                  # pinned: 5 with an empty head box
+    assert list(fr.unscored) == ["dropped by the input stage (FrameError)"]
+    assert r.scene_columns == ["Office", "Living room", "Kitchen", "Library", "Courtyard"]
     st = open_store(store)
     scored = set(st.frames["id"][np.isin(st.frames["id"], [f.id for f in chosen])].tolist())
-    per = r["methods"]["model"]["per_scene"]
+    per = r.methods["model"].per_scene
     court = [f.id for f in chosen if f.scene.startswith("courtyard/") and f.id in scored]
-    assert per["Courtyard"]["n"] == len(court)
+    assert per["Courtyard"].n == len(court)
     assert {i.rsplit("/", 2)[0] for i in court} == {"courtyard/002", "courtyard/003"}    # merged by frames
-    assert per["Office"]["n"] == sum(f.scene == "lab/1013_2" and f.id in scored for f in chosen)
-    assert sum(p["n"] for p in per.values()) == r["n_frames"]
-    assert r["methods"]["model"]["front"]["n"] == int(front[[f.id in scored for f in chosen]].sum())  # per window
+    assert per["Office"].n == sum(f.scene == "lab/1013_2" and f.id in scored for f in chosen)
+    assert sum(p.n for p in per.values()) == r.n_frames
+    assert r.methods["model"].front.n == int(front[[f.id in scored for f in chosen]].sum())  # per window
     # a column's 3D is the mean over its frames: the merged courtyard, by frames
     sel = np.isin(st.frames["id"], court)
     v, g = st.frames["view"][sel], st.frames["gaze"][sel]
     e = np.degrees(np.arccos(np.clip(np.sum(v * g, 1) / np.linalg.norm(v, axis=1) / np.linalg.norm(g, axis=1), -1, 1)))
-    assert r["methods"]["view_prior"]["per_scene"]["Courtyard"]["mae3d"] == pytest.approx(e.mean(), abs=1e-3)
+    assert r.methods["view_prior"].per_scene["Courtyard"].mae3d == pytest.approx(e.mean(), abs=1e-3)
     table = format_eval_table(r)
     assert "GAFA's 7-frame windows (raw-consecutive frames, interval 7)" in table
     header = next(line for line in table.splitlines() if "Office" in line)
@@ -177,10 +177,10 @@ def test_gafa_eval_prints_table_3_per_scene_over_gafa_windows(gafa_store):
     paper = next(line for line in table.splitlines() if line.startswith("GA3CE, the paper's figure"))
     assert paper.split()[-3:] == ["19.9", "/", "-"] and paper.count("-   /   -") == 5   # the unknown cells stay empty
     every = evaluate(store, ckpt, cdf_path=None, frames="all")
-    assert every["frames"]["expected"] == len(frames)
-    assert every["n_frames"] == every["frames"]["scored"] > r["n_frames"]
+    assert every.frames.expected == len(frames)
+    assert every.n_frames == every.frames.scored > r.n_frames
     assert "every frame of the split, NOT GAFA's protocol" in format_eval_table(every)
-    assert every["paper_rows"] == {}
+    assert every.paper_rows == {}
 
 
 def test_recipe_batch_size_per_dataset_and_gafa_ablation_labels(gafa_store):

@@ -285,7 +285,7 @@ def test_eval_gfm_end_to_end(gfm_store, net, ckpt, synth_world, tmp_path):
     assert "GFIE's Table 1 columns" in res.output and "4 of 4 frames" in res.output
     for label in ("GFIE ", "Ours ", "Ours + GFM "):
         assert any(line.startswith(label) for line in res.output.splitlines())
-    r = json.loads(js.read_text())
+    r = json.loads(js.read_text())   # the JSON eval --json wrote
     m = r["gfm"]["methods"]
     assert r["gfm"]["n_scored"] == r["n_frames"] == 4 and not r["gfm"]["skipped"]
     assert m["ours"]["angle3d"] == pytest.approx(r["methods"]["model"]["mae3d"], abs=1e-3)
@@ -307,16 +307,16 @@ def test_eval_gfm_end_to_end(gfm_store, net, ckpt, synth_world, tmp_path):
     lost = ds.store.frames["id"][ds.rows[0]]
     (data / "depth" / f"{lost}.npy").unlink()
     r2 = evaluate(gfm_store, best, cdf_path=None, gfm=ckpt, data=data, threads=1)
-    assert r2["gfm"]["n_scored"] == 3 and list(r2["gfm"]["skipped"]) == [lost]
-    assert "depth file not found" in r2["gfm"]["skipped"][lost]
-    assert r2["gfm"]["methods"]["gfie"]["n"] == 3
+    assert r2.gfm["n_scored"] == 3 and list(r2.gfm["skipped"]) == [lost]
+    assert "depth file not found" in r2.gfm["skipped"][lost]
+    assert r2.gfm["methods"]["gfie"]["n"] == 3
 
 
 def test_ours_gfm_with_gfies_own_g_reproduces_gfie(gfm_store, ckpt, tmp_path):
     """An appearance-only checkpoint has g = v, and v here is GFIE's head network's own output: the
     "Ours + GFM" columns must then equal GFIE's."""
     r = evaluate(gfm_store, _train(gfm_store, tmp_path / "app", use_context=False), cdf_path=None, gfm=ckpt, threads=1)
-    m = r["gfm"]["methods"]
+    m = r.gfm["methods"]
     for k in ("auc", "l2", "dist3d", "angle3d"):
         assert m["ours_gfm"][k] == pytest.approx(m["gfie"][k], rel=1e-5, abs=1e-6), k
-    assert m["ours"]["angle3d"] == pytest.approx(r["methods"]["view_prior"]["mae3d"], abs=1e-3)
+    assert m["ours"]["angle3d"] == pytest.approx(r.methods["view_prior"].mae3d, abs=1e-3)

@@ -118,7 +118,7 @@ def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
     with pytest.raises(CheckpointError, match="store fingerprint"):
         evaluate(other, run / "best.pt", split="test", cdf_path=None)
     r = evaluate(other, run / "best.pt", split="test", cdf_path=None, force=True)
-    assert r["n_frames"] > 0
+    assert r.n_frames > 0
     # a store with no train split (CAD-120, the transfer world) is another dataset by design: Table 2
     frames, objects, scenes = toy_world(120, 9, 40, None)
     frames["split"][:] = 2
@@ -127,8 +127,8 @@ def test_checkpoint_is_plain_and_mismatches_are_refused(store, tmp_path):
     w.close({**TOY_ATTRS, "dataset": {"name": "toy", "root": "(generated)"}})
     t = evaluate(tmp_path / "transfer.zarr", run / "best.pt", split="test", cdf_path=None)
     forced = evaluate(tmp_path / "transfer.zarr", run / "best.pt", split="test", cdf_path=None, force=True)
-    assert t["n_frames"] == forced["n_frames"] > r["n_frames"]
-    assert t["methods"]["model"]["mae3d"] == forced["methods"]["model"]["mae3d"] > 0
+    assert t.n_frames == forced.n_frames > r.n_frames
+    assert t.methods["model"].mae3d == forced.methods["model"].mae3d > 0
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="cannot read"):
         load_checkpoint(tmp_path / "bad.pt")
@@ -142,8 +142,8 @@ def test_short_training_learns(tmp_path):
                       progress=False, model=ModelConfig(use_objects=False, **SMALL))
     run = train(cfg)
     r = evaluate(st, run / "best.pt", split="test", cdf_path=None)
-    prior = r["methods"]["view_prior"]["mae3d"]
-    assert r["methods"]["model"]["mae3d"] < 0.85 * prior, format_eval_table(r)
+    prior = r.methods["view_prior"].mae3d
+    assert r.methods["model"].mae3d < 0.85 * prior, format_eval_table(r)
     hist = load_checkpoint(run / "last.pt")["history"]
     assert hist[-1]["train_mae"] < hist[0]["train_mae"]
 
@@ -151,27 +151,34 @@ def test_short_training_learns(tmp_path):
 def test_evaluate_reports_model_and_baselines(store, tmp_path):
     run = train(_cfg(store, tmp_path / "r", epochs=1))
     r = evaluate(store, run / "best.pt", split="test", json_path=tmp_path / "e.json")
-    m = r["methods"]
+    m = r.methods
     assert set(m) == {"model", "view_prior", "head_from_pose", "snap_to_object"}
     for res in m.values():
-        assert res["n"] == r["n_frames"] == res["front"]["n"] + res["back"]["n"]
-        assert sum(s["n"] for s in res["per_scene"].values()) == r["n_frames"]
-        assert 0 < res["mae3d"] < 180
-    assert r["beats"] == {k: m["model"]["mae3d"] < m[k]["mae3d"]
-                          for k in ("view_prior", "head_from_pose", "snap_to_object")}
-    assert (json.loads((tmp_path / "e.json").read_text())["methods"]["model"]["mae3d"]
-            == pytest.approx(m["model"]["mae3d"]))
+        assert res.n == r.n_frames == res.front.n + res.back.n
+        assert sum(s.n for s in res.per_scene.values()) == r.n_frames
+        assert 0 < res.mae3d < 180
+    assert r.beats == {k: m["model"].mae3d < m[k].mae3d
+                       for k in ("view_prior", "head_from_pose", "snap_to_object")}
+    written = json.loads((tmp_path / "e.json").read_text())
+    assert written["methods"]["model"]["mae3d"] == pytest.approx(m["model"].mae3d)
+    # the JSON keeps the keys, and their order, of the dict evaluate returned before EvalResult
+    assert list(written) == ["store", "split", "checkpoint", "epoch", "no_objects_checkpoint", "compared_checkpoints",
+                             "labels", "config", "dataset", "n_frames", "frames", "head_sources",
+                             "head_fallback_frames", "snap_cone_deg", "head_from_pose_frames", "snapped_frames",
+                             "methods", "scene_columns", "paper_rows", "beats", "ratio_to_prior", "cdf_png"]
+    assert list(written["methods"]["model"]) == ["n", "mae3d", "mae2d", "median3d", "front", "back", "per_scene"]
+    assert (tmp_path / "e.json").read_text() == json.dumps(r.to_json(), indent=2, default=float)
     assert (run / "eval_test_cdf.png").stat().st_size > 1000
     table = format_eval_table(r)
-    assert r["labels"]["model"] == "GA3CE (paper)"   # the default model is the paper's, named so
+    assert r.labels["model"] == "GA3CE (paper)"   # the default model is the paper's, named so
     assert table.splitlines()[4].startswith("GA3CE (paper) ") and " model " not in table
-    for key, beats in r["beats"].items():   # the table says which baselines the model does not beat
-        assert (f"  beats {r['labels'][key]}" in table) == beats
-        assert (f"does NOT beat {r['labels'][key]}" in table) == (not beats)
+    for key, beats in r.beats.items():   # the table says which baselines the model does not beat
+        assert (f"  beats {r.labels[key]}" in table) == beats
+        assert (f"does NOT beat {r.labels[key]}" in table) == (not beats)
     # appearance only: the checkpoint reproduces the v prior exactly
     app = train(_cfg(store, tmp_path / "app", model=ModelConfig(use_context=False, **SMALL)))
     ra = evaluate(store, app / "best.pt", split="test", cdf_path=None)
-    assert ra["methods"]["model"]["mae3d"] == pytest.approx(ra["methods"]["view_prior"]["mae3d"], abs=1e-4)
+    assert ra.methods["model"].mae3d == pytest.approx(ra.methods["view_prior"].mae3d, abs=1e-4)
 
 
 def test_ablate_table(store, tmp_path):
@@ -197,22 +204,22 @@ def test_ablate_table(store, tmp_path):
     # eval of the full row scores the no-objects row beside it (what the objects add), and says so
     full, noobj = (tmp_path / "abl" / n / "seed0" / "best.pt" for n in ("full", "no-objects"))
     r = evaluate(store, full, split="test", cdf_path=None)
-    assert r["no_objects_checkpoint"] == str(noobj)
-    m = r["methods"]
-    assert m["no_objects"]["mae3d"] == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
-    assert m["ours"]["mae3d"] == pytest.approx(s["rows"][4]["mae3d"], abs=1e-9)   # ours beside it, by name
-    assert r["labels"]["ours"] == "ours" and r["beats"]["ours"] == (m["model"]["mae3d"] < m["ours"]["mae3d"])
-    assert m["model"]["mae3d"] == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
-    assert r["beats"]["no_objects"] == (m["model"]["mae3d"] < m["no_objects"]["mae3d"])
+    assert r.no_objects_checkpoint == str(noobj)
+    m = r.methods
+    assert m["no_objects"].mae3d == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
+    assert m["ours"].mae3d == pytest.approx(s["rows"][4]["mae3d"], abs=1e-9)   # ours beside it, by name
+    assert r.labels["ours"] == "ours" and r.beats["ours"] == (m["model"].mae3d < m["ours"].mae3d)
+    assert m["model"].mae3d == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
+    assert r.beats["no_objects"] == (m["model"].mae3d < m["no_objects"].mae3d)
     table = format_eval_table(r)
     assert "no objects (app. + pose)" in table
-    assert ("objects add" if r["beats"]["no_objects"] else "objects cost") in table
-    assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None)["methods"]
-    assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None)["methods"]
+    assert ("objects add" if r.beats["no_objects"] else "objects cost") in table
+    assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None, no_objects=None).methods
+    assert "no_objects" not in evaluate(store, noobj, split="test", cdf_path=None).methods
     res = CliRunner().invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(full), "--cdf", "none",
                                    "--no-scenes"])
     assert res.exit_code == 0, res.output
-    assert f"{m['no_objects']['mae3d']:.2f}" in res.output and "no objects (app. + pose)" in res.output
+    assert f"{m['no_objects'].mae3d:.2f}" in res.output and "no objects (app. + pose)" in res.output
     # rerunning reuses the finished runs
     mtime = (tmp_path / "abl" / "full" / "seed0" / "best.pt").stat().st_mtime
     ablate(base, tmp_path / "abl", rows=["full"])
@@ -292,7 +299,7 @@ def test_frozen_g0_is_the_no_objects_twin(store, tmp_path):
     r = evaluate(store, run / "best.pt", split="test", cdf_path=None,
                  no_objects=run / "g0" / "best.pt")
     name = "ours" if METHODS["ours"].config.get("pointer_g0") == "frozen" else "ours, pointer_g0=frozen"
-    assert r["labels"] == {**r["labels"], "model": name, "no_objects": "no objects (app. + pose)"}
+    assert r.labels == {**r.labels, "model": name, "no_objects": "no objects (app. + pose)"}
     assert run_done(run, 2) and run_done(run / "g0", 2)
     # resumed when finished, the g0 stage is reused; resumed with more epochs, both continue
     mtime = (run / "g0" / "best.pt").stat().st_mtime

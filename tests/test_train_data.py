@@ -238,15 +238,16 @@ def test_metrics():
     np.testing.assert_allclose(e2[:2], [90, 0], atol=1e-6)
     assert np.isnan(e2[2])                                   # x-y part vanishes: skipped
     r = summarize(pred, gt, np.array([0, 0, 1]), ["a", "b"])
-    assert r["mae3d"] == pytest.approx(30, abs=1e-5)
-    assert r["mae2d"] == pytest.approx(45, abs=1e-5)
-    assert r["front"]["n"] == 2  # z <= 0 is front
-    assert r["front"]["mae3d"] == pytest.approx(45, abs=1e-5)
-    assert r["back"]["n"] == 1
-    assert r["back"]["mae3d"] == pytest.approx(0, abs=1e-5)
-    assert r["per_scene"]["a"] == {"n": 2, "mae3d": pytest.approx(45, abs=1e-5), "mae2d": pytest.approx(45, abs=1e-5)}
-    assert r["per_scene"]["b"]["n"] == 1 and np.isnan(r["per_scene"]["b"]["mae2d"])
+    assert r.mae3d == pytest.approx(30, abs=1e-5)
+    assert r.mae2d == pytest.approx(45, abs=1e-5)
+    assert r.front.n == 2  # z <= 0 is front
+    assert r.front.mae3d == pytest.approx(45, abs=1e-5)
+    assert r.back.n == 1
+    assert r.back.mae3d == pytest.approx(0, abs=1e-5)
+    assert r.per_scene["a"].to_json() == {"n": 2, "mae3d": pytest.approx(45, abs=1e-5),
+                                          "mae2d": pytest.approx(45, abs=1e-5)}
+    assert r.per_scene["b"].n == 1 and np.isnan(r.per_scene["b"].mae2d)
     # front/back per window (GAFA): given, not from each frame's own ground truth
     w = summarize(pred, gt, np.array([0, 0, 1]), ["a", "b"], front=np.array([False, False, True]))
-    assert (w["front"]["n"], w["back"]["n"]) == (1, 2)
-    assert w["front"]["mae3d"] == pytest.approx(0, abs=1e-5) and w["back"]["mae3d"] == pytest.approx(45, abs=1e-5)
+    assert (w.front.n, w.back.n) == (1, 2)
+    assert w.front.mae3d == pytest.approx(0, abs=1e-5) and w.back.mae3d == pytest.approx(45, abs=1e-5)

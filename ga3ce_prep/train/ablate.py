@@ -103,15 +103,15 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
                 train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
             r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads,
                          no_objects=None, compare={})
-            maes.append(r["methods"]["model"]["mae3d"])
-            prior_mae = r["methods"]["view_prior"]["mae3d"]
+            maes.append(r.model.mae3d)
+            prior_mae = r.methods["view_prior"].mae3d
             evals.append(r)
         mae = float(np.mean(maes))
         row = {"name": name, "label": row_label(ab, base.model), "table4": ab.table4, "table5": ab.table5,
                "mae3d": mae, "mae3d_std": float(np.std(maes)) if len(maes) > 1 else None,
                "mae3d_seeds": maes, "ratio": mae / prior_mae,
                "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
-               "mae2d": float(np.mean([e["methods"]["model"]["mae2d"] for e in evals])),
+               "mae2d": float(np.mean([e.model.mae2d for e in evals])),
                "paper_gfie": ab.paper_gfie, "paper_gafa": ab.paper_gafa,
                "paper_ratio_gfie": ab.paper_gfie / BY_NAME["appearance"].paper_gfie if ab.paper_gfie else None,
                "paper_ratio_gafa": ab.paper_gafa / BY_NAME["appearance"].paper_gafa if ab.paper_gafa else None}

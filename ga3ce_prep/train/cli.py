@@ -231,8 +231,8 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
                  json_path=json_path, threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size,
                  no_objects=None if no_objects == "none" else no_objects)
     click.echo(format_eval_table(r, per_scene=not no_scenes))
-    if "cdf_png" in r:
-        click.echo(f"\nCDF plot: {r['cdf_png']}")
+    if r.cdf_png is not None:
+        click.echo(f"\nCDF plot: {r.cdf_png}")
     if json_path:
         click.echo(f"JSON: {json_path}")
 

@@ -11,7 +11,7 @@ beside it in an `ablate` folder (the other named method, the model without objec
 prior v, the head direction from the pose keypoints, and snap-to-object (v snapped to the nearest
 object within a cone whose half-angle is chosen on the validation split). The summary says plainly
 whether the model beats each. Python API:
-`evaluate(store, checkpoint, split) -> metrics dict`.
+`evaluate(store, checkpoint, split) -> EvalResult` (train/results.py; `.to_json()`: what `eval --json` writes).
 """
 from __future__ import annotations
 
@@ -19,7 +19,6 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -37,6 +36,7 @@ from .gfm import evaluate_gfm, format_gfm_table
 from .metrics import summarize
 from .plots import plot_cdf
 from .profiles import DatasetProfile
+from .results import EvalResult
 
 log = logging.getLogger("ga3ce_prep.train")
 
@@ -94,7 +94,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
              json_path: str | Path | None = None, threads: int = 2, frames: str = "auto",
              data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16,
-             no_objects: str | Path | None = "auto", compare: dict[str, str | Path] | None = None) -> dict[str, Any]:
+             no_objects: str | Path | None = "auto", compare: dict[str, str | Path] | None = None) -> EvalResult:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store; implied when the store has
@@ -108,13 +108,12 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     gfm_batch_size frames per pass). no_objects: a checkpoint of the model without objects to score
     beside this one (method "no_objects"), "auto" = the ablate folder's (`sibling_checkpoints`),
     None = none. compare: other checkpoints to score beside it, {key: path}; None = the ablate
-    folder's other named models ("ga3ce", "ours") when there. Returns a dict: store, split,
-    checkpoint, epoch, labels {method: its name in tables}, n_frames
-    (scored), frames (train/frameset.py ScoredFrames.as_dict: protocol, expected, scored, unscored
-    {reason: [ids]}), head_sources {source: scored frames}, head_fallback_frames (scored frames whose
-    head position came from a fallback), snap_cone_deg, methods {name: summarize(...)},
+    folder's other named models ("ga3ce", "ours") when there. Returns an EvalResult
+    (train/results.py): store, split, checkpoint, epoch, labels {method: its name in tables},
+    n_frames (scored), frames (frameset.ScoredFrames: protocol, expected, scored, unscored {reason:
+    [ids]}), head_sources, head_fallback_frames, snap_cone_deg, methods {name: MethodMetrics},
     scene_columns, paper_rows, beats {baseline: bool}, ratio_to_prior, cdf_png, and gfm
-    (`evaluate_gfm`) when asked.
+    (`evaluate_gfm`) when asked; json_path gets its `to_json()`.
     """
     torch.set_num_threads(threads)
     st = store if isinstance(store, ContextStore) else open_store(store, verify=True)
@@ -141,7 +140,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     config = ModelConfig.from_dict(ckpt["config"]["model"])
     labels = {"model": model_label(config)}
     siblings = sibling_checkpoints(checkpoint)
-    others = dict(compare) if compare is not None else {
+    others: dict[str, str | Path] = dict(compare) if compare is not None else {
         k: v for k, v in siblings.items() if k in METHODS and k != config.method}
     no_objects = siblings.get("no_objects") if no_objects == "auto" else no_objects
     if no_objects is not None:
@@ -166,34 +165,35 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
 
     scene, columns = _scene_columns(st, profile, ds.scene)
     methods = {name: summarize(p, ds.gaze, scene, columns, fs.front) for name, p in preds.items()}
-    model_mae = methods["model"]["mae3d"]
-    head_sources, head_fallback = {}, 0
+    model_mae = methods["model"].mae3d
+    head_sources: dict[str, int] = {}
+    head_fallback = 0
     if "head" in st.source_names:  # code 0: the backend's own way (head: depth: measured depth)
         codes = st.frames["head_source"][ds.rows]
         head_sources = {st.source_names["head"][k]: int((codes == k).sum()) for k in np.unique(codes)}
         head_fallback = int((codes != 0).sum())
-    result: dict[str, Any] = {
-        "store": str(st.path), "split": split, "checkpoint": str(checkpoint), "epoch": int(ckpt["epoch"]) + 1,
-        "no_objects_checkpoint": None if no_objects is None else str(no_objects),
-        "compared_checkpoints": {k: str(v) for k, v in others.items()}, "labels": labels,
-        "config": ckpt["config"], "dataset": profile.name, "n_frames": len(ds), "frames": fs.as_dict(),
-        "head_sources": head_sources, "head_fallback_frames": head_fallback, "snap_cone_deg": snap_cone_deg,
-        "head_from_pose_frames": int(pose_ok.sum()), "snapped_frames": int(snapped.sum()),
-        "methods": methods, "scene_columns": [c for c in columns if c in methods["model"]["per_scene"]],
-        "paper_rows": {label: dict(cells) for label, cells in profile.paper_rows} if fs.protocol == "windows" else {},
-        "beats": {k: bool(model_mae < m["mae3d"]) for k, m in methods.items() if k != "model"},
-        "ratio_to_prior": model_mae / methods["view_prior"]["mae3d"],
-    }
+    result = EvalResult(
+        store=str(st.path), split=split, checkpoint=str(checkpoint), epoch=int(ckpt["epoch"]) + 1,
+        no_objects_checkpoint=None if no_objects is None else str(no_objects),
+        compared_checkpoints={k: str(v) for k, v in others.items()}, labels=labels,
+        config=ckpt["config"], dataset=profile.name, n_frames=len(ds), frames=fs,
+        head_sources=head_sources, head_fallback_frames=head_fallback, snap_cone_deg=snap_cone_deg,
+        head_from_pose_frames=int(pose_ok.sum()), snapped_frames=int(snapped.sum()),
+        methods=methods, scene_columns=[c for c in columns if c in methods["model"].per_scene],
+        paper_rows={label: dict(cells) for label, cells in profile.paper_rows} if fs.protocol == "windows" else {},
+        beats={k: bool(model_mae < m.mae3d) for k, m in methods.items() if k != "model"},
+        ratio_to_prior=model_mae / methods["view_prior"].mae3d,
+    )
     if gfm is not None:
-        result["gfm"] = evaluate_gfm(st, ds.rows, preds["model"], gfm, data, device, gfm_batch_size)
+        result.gfm = evaluate_gfm(st, ds.rows, preds["model"], gfm, data, device, gfm_batch_size)
     if cdf_path is not None:
         path = Path(checkpoint).with_name(f"eval_{split}_cdf.png") if cdf_path == "auto" else Path(cdf_path)
         errors = {labels[k]: angular_error_deg(p, ds.gaze) for k, p in preds.items()
                   if k not in ("head_from_pose", "snap_to_object")}
-        result["cdf_png"] = str(plot_cdf(errors, path, f"{Path(st.path).name}: {split}, {len(ds)} frames"))
+        result.cdf_png = str(plot_cdf(errors, path, f"{Path(st.path).name}: {split}, {len(ds)} frames"))
     if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=2, default=float))
-        result["json"] = str(json_path)
+        Path(json_path).write_text(json.dumps(result.to_json(), indent=2, default=float))
+        result.json = str(json_path)
     return result
 
 
@@ -207,80 +207,77 @@ def _cell(mae3d: float | None, mae2d: float | None) -> str:
     return f"{g(mae3d)} / {g(mae2d)}"
 
 
-def format_accounting(result: dict[str, Any]) -> list[str]:
+def format_accounting(result: EvalResult) -> list[str]:
     """"scored N of M" with the protocol, where the rows came from, and a line per reason for the rest."""
-    fr = result["frames"]
-    label = PROTOCOLS[fr["protocol"]]
-    if fr["protocol"] == "all" and result.get("dataset") == "gafa":
+    fr = result.frames
+    label = PROTOCOLS[fr.protocol]
+    if fr.protocol == "all" and result.dataset == "gafa":
         label += ", NOT GAFA's protocol (its 7-frame windows: --frames windows)"
-    within = (f" ({fr['expected']} of the split's {fr['split_rows']} frames)"
-              if fr["expected"] != fr["split_rows"] else "")
-    lines = [f"scored {fr['scored']} of {fr['expected']} {result['split']} frames: {label}{within}; "
-             f"rows from {fr['source']}"]
-    for reason, ids in fr["unscored"].items():
+    within = f" ({fr.expected} of the split's {fr.split_rows} frames)" if fr.expected != fr.split_rows else ""
+    lines = [f"scored {fr.scored} of {fr.expected} {result.split} frames: {label}{within}; rows from {fr.source}"]
+    for reason, ids in fr.unscored.items():
         lines.append(f"  {len(ids):6d} not scored: {reason} (e.g. {ids[0]})")
-    hs = result.get("head_sources", {})
-    if result.get("head_fallback_frames"):
+    hs = result.head_sources
+    if result.head_fallback_frames:
         lines.append("head position of the scored frames: " + ", ".join(f"{k} {v}" for k, v in hs.items())
                      + " (docs/pipeline.md, \"Head position\")")
     return lines
 
 
-def format_scene_table(result: dict[str, Any]) -> list[str]:
+def format_scene_table(result: EvalResult) -> list[str]:
     """The per-scene table: 3D / 2D MAE per column and over all frames, for every method, and the
     paper's rows beside them (unknown cells '-')."""
-    m, cols = result["methods"], result["scene_columns"]
+    m, cols = result.methods, result.scene_columns
     w = 13
     lines = ["per scene: 3D / 2D MAE (deg); All over frames",
              f"{'':34s} " + " ".join(f"{c[:w]:>{w}s}" for c in [*cols, "All"])]
-    for key, label in result["labels"].items():
+    for key, label in result.labels.items():
         if key not in m:
             continue
-        ps = m[key]["per_scene"]
-        cells = [_cell(ps[c]["mae3d"], ps[c]["mae2d"]) for c in cols] + [_cell(m[key]["mae3d"], m[key]["mae2d"])]
+        ps = m[key].per_scene
+        cells = [_cell(ps[c].mae3d, ps[c].mae2d) for c in cols] + [_cell(m[key].mae3d, m[key].mae2d)]
         lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in cells))
-    for label, cells in result.get("paper_rows", {}).items():
-        row = [_cell(*cells[c]) if c in cells else _cell(None, None) for c in [*cols, "All"]]
+    for label, paper in result.paper_rows.items():
+        row = [_cell(*paper[c]) if c in paper else _cell(None, None) for c in [*cols, "All"]]
         lines.append(f"{label[:34]:34s} " + " ".join(f"{c:>{w}s}" for c in row))
-    lines.append(f"{'frames':34s} "
-                 + " ".join(f"{n:>{w}d}" for n in [*(m['model']['per_scene'][c]['n'] for c in cols), m['model']['n']]))
-    if result.get("paper_rows"):
+    model = result.model
+    lines.append(f"{'frames':34s} " + " ".join(f"{n:>{w}d}" for n in [*(model.per_scene[c].n for c in cols), model.n]))
+    if result.paper_rows:
         lines.append("(GA3CE, the paper's figure: Table 3's per-scene cells are not in our sources, '-'; its "
                      "All 3D is the full model of Tables 4/5. GAFA's README: its released GazeNet, averaged per "
                      "batch of 32 windows; ours are per frame)")
     return lines
 
 
-def format_eval_table(result: dict[str, Any], per_scene: bool = True) -> str:
+def format_eval_table(result: EvalResult, per_scene: bool = True) -> str:
     """The evaluation as plain-text tables: which frames, methods, per scene, and the verdict on each baseline."""
-    m = result["methods"]
-    lines = [f"{result['store']} | split {result['split']} | {result['n_frames']} frames | "
-             f"{result['checkpoint']} (epoch {result['epoch']})", *format_accounting(result), ""]
-    per_window = " (front/back per window)" if result["frames"]["protocol"] == "windows" else ""
+    m, model = result.methods, result.model
+    lines = [f"{result.store} | split {result.split} | {result.n_frames} frames | "
+             f"{result.checkpoint} (epoch {result.epoch})", *format_accounting(result), ""]
+    per_window = " (front/back per window)" if result.frames.protocol == "windows" else ""
     lines.append(f"{'method':34s} {'3D MAE':>7s} {'2D MAE':>7s} {'median':>7s} "
                  f"{'front3D':>7s} {'back3D':>7s}{per_window}")
-    for key, label in result["labels"].items():
+    for key, label in result.labels.items():
         if key not in m:
             continue
         if key == "snap_to_object":
-            label = f"{label} (cone {result['snap_cone_deg']:g} deg)"
+            label = f"{label} (cone {result.snap_cone_deg:g} deg)"
         r = m[key]
-        lines.append(f"{label:34s} {_f(r['mae3d']):>7s} {_f(r['mae2d']):>7s} {_f(r['median3d']):>7s} "
-                     f"{_f(r['front']['mae3d']):>7s} {_f(r['back']['mae3d']):>7s}")
-    lines.append(f"{'frames':34s} {'':>7s} {'':>7s} {'':>7s} "
-                 f"{m['model']['front']['n']:>7d} {m['model']['back']['n']:>7d}")
+        lines.append(f"{label:34s} {_f(r.mae3d):>7s} {_f(r.mae2d):>7s} {_f(r.median3d):>7s} "
+                     f"{_f(r.front.mae3d):>7s} {_f(r.back.mae3d):>7s}")
+    lines.append(f"{'frames':34s} {'':>7s} {'':>7s} {'':>7s} {model.front.n:>7d} {model.back.n:>7d}")
     lines.append("")
-    name = result["labels"]["model"]
-    lines.append(f"{name} / v prior = {result['ratio_to_prior']:.3f} (3D MAE); the paper on GFIE: 11.1 / 19.4 = 0.572")
+    name = result.labels["model"]
+    lines.append(f"{name} / v prior = {result.ratio_to_prior:.3f} (3D MAE); the paper on GFIE: 11.1 / 19.4 = 0.572")
     lines.append(f"{name}:")
-    for key, beats in result["beats"].items():
-        d = m[key]["mae3d"] - m["model"]["mae3d"]
-        lines.append(f"  {'beats' if beats else 'does NOT beat'} {result['labels'][key]}: "
-                     f"{m['model']['mae3d']:.2f} vs {m[key]['mae3d']:.2f} deg ({d:+.2f}"
-                     + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key]['mae3d']:.0%})"
+    for key, beats in result.beats.items():
+        d = m[key].mae3d - model.mae3d
+        lines.append(f"  {'beats' if beats else 'does NOT beat'} {result.labels[key]}: "
+                     f"{model.mae3d:.2f} vs {m[key].mae3d:.2f} deg ({d:+.2f}"
+                     + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key].mae3d:.0%})"
                         if key == "no_objects" else ")"))
-    if per_scene and (len(result["scene_columns"]) > 1 or result.get("paper_rows")):
+    if per_scene and (len(result.scene_columns) > 1 or result.paper_rows):
         lines += ["", *format_scene_table(result)]
-    if "gfm" in result:
-        lines += ["", format_gfm_table(result["gfm"])]
+    if result.gfm is not None:
+        lines += ["", format_gfm_table(result.gfm)]
     return "\n".join(lines)

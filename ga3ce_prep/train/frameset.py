@@ -55,11 +55,16 @@ class ScoredFrames:
     unscored: dict[str, list[str]] = field(default_factory=dict)
     front: np.ndarray | None = None
 
+    @property
+    def scored(self) -> int:
+        """N, the frames scored."""
+        return int(len(self.rows))
+
     def as_dict(self) -> dict:
         """The JSON form: protocol, its description, source, expected, scored, split_rows, and
         unscored {reason: [ids]}."""
         return {"protocol": self.protocol, "description": PROTOCOLS[self.protocol], "source": self.source,
-                "expected": self.expected, "scored": int(len(self.rows)), "split_rows": self.split_rows,
+                "expected": self.expected, "scored": self.scored, "split_rows": self.split_rows,
                 "unscored": self.unscored}
 
 

@@ -8,11 +8,10 @@ are plain per-frame means (GAFA's released code averages per batch in `models/ga
 """
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from ..geometry import angular_error_deg
+from .results import GroupMetrics, MethodMetrics
 
 
 def angular_errors_2d(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -30,24 +29,24 @@ def _mean(x: np.ndarray) -> float:
 
 
 def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: list[str],
-              front: np.ndarray | None = None) -> dict[str, Any]:
+              front: np.ndarray | None = None) -> MethodMetrics:
     """Metrics of one method on n frames: pred, gt (n, 3); scene (n,) int codes into scene_names;
     front (n,) bool (GAFA: per window from its first frame), None: gt z <= 0 per frame.
 
-    Returns {n, mae3d, mae2d, median3d, front: {n, mae3d, mae2d}, back: {...},
-    per_scene: {name: {n, mae3d, mae2d}} in scene_names' order}; degrees.
+    Returns MethodMetrics (train/results.py): n, mae3d, mae2d, median3d, front and back
+    GroupMetrics (n, mae3d, mae2d), per_scene {name: GroupMetrics} in scene_names' order; degrees.
     """
     e3 = angular_error_deg(pred, gt)
     e2 = angular_errors_2d(pred, gt)
     front = gt[:, 2] <= 0 if front is None else np.asarray(front, bool)
-    out: dict[str, Any] = {"n": int(len(gt)), "mae3d": _mean(e3), "mae2d": _mean(e2),
-                           "median3d": float(np.median(e3)) if len(e3) else float("nan")}
-    for name, sel in (("front", front), ("back", ~front)):
-        out[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel]), "mae2d": _mean(e2[sel])}
+
+    def group(sel: np.ndarray) -> GroupMetrics:
+        return GroupMetrics(n=int(sel.sum()), mae3d=_mean(e3[sel]), mae2d=_mean(e2[sel]))
+
     per_scene = {}
     for code in np.unique(scene):
-        sel = scene == code
         name = scene_names[code] if 0 <= code < len(scene_names) else str(code)
-        per_scene[name] = {"n": int(sel.sum()), "mae3d": _mean(e3[sel]), "mae2d": _mean(e2[sel])}
-    out["per_scene"] = per_scene
-    return out
+        per_scene[name] = group(scene == code)
+    return MethodMetrics(n=int(len(gt)), mae3d=_mean(e3), mae2d=_mean(e2),
+                         median3d=float(np.median(e3)) if len(e3) else float("nan"),
+                         front=group(front), back=group(~front), per_scene=per_scene)

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .results import MethodMetrics
 
 
 def _pyplot():
@@ -59,17 +62,17 @@ def plot_cdf(errors: dict[str, np.ndarray], path: str | Path, title: str = "") -
     return Path(path)
 
 
-def plot_per_scene(methods: dict[str, dict[str, Any]], labels: dict[str, str], path: str | Path) -> Path:
+def plot_per_scene(methods: dict[str, MethodMetrics], labels: dict[str, str], path: str | Path) -> Path:
     """Bars of the 3D MAE per scene (and over all frames), one bar per method: `methods` is an
-    evaluation's {key: summarize(...)}, `labels` {key: legend label} (the evaluation's labels)."""
+    evaluation's {key: MethodMetrics}, `labels` {key: legend label} (the evaluation's labels)."""
     plt = _pyplot()
     first = next(iter(methods.values()))
-    scenes = list(first["per_scene"])
-    ticks = [f"{s}\n({first['per_scene'][s]['n']} frames)" for s in scenes] + [f"all\n({first['n']} frames)"]
+    scenes = list(first.per_scene)
+    ticks = [f"{s}\n({first.per_scene[s].n} frames)" for s in scenes] + [f"all\n({first.n} frames)"]
     x, width = np.arange(len(ticks)), 0.8 / len(methods)
     fig, ax = plt.subplots(figsize=(max(6.0, 0.3 * len(ticks) * len(methods) + 2), 4), dpi=110)
     for k, (key, m) in enumerate(methods.items()):
-        mae = [m["per_scene"][s]["mae3d"] for s in scenes] + [m["mae3d"]]
+        mae = [m.per_scene[s].mae3d for s in scenes] + [m.mae3d]
         ax.bar(x - 0.4 + (k + 0.5) * width, mae, width, label=labels.get(key, key))
     tilt = len(ticks) > 6
     ax.set_xticks(x, ticks, rotation=30 if tilt else 0, ha="right" if tilt else "center", fontsize=8)

@@ -121,20 +121,21 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
                         ckpt["config"].get("n_max"), data, device)
 
     model_keys = ("output", "rotation", "encoding", "use_pose", "use_objects", "use_context", "cone_bias")
-    summary = {"run": str(run), "store": str(store_path), "split": f"{split}, {result['n_frames']} frames",
-               "checkpoint": f"{checkpoint} (epoch {result['epoch']} of {config.get('epochs')})",
-               "model": result["labels"]["model"] + " ("
+    summary = {"run": str(run), "store": str(store_path), "split": f"{split}, {result.n_frames} frames",
+               "checkpoint": f"{checkpoint} (epoch {result.epoch} of {config.get('epochs')})",
+               "model": result.labels["model"] + " ("
                + ", ".join(f"{k}={config['model'][k]}" for k in model_keys if k in config["model"]) + ")",
                "ga3ce-prep": __version__}
     rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in summary.items())
     curves = plot_curves(history, out / "curves.png")
-    per_scene = plot_per_scene(result["methods"], result["labels"], out / "per_scene.png")
-    parts = [f"<h1>Run report, {html.escape(result['labels']['model'])}: {html.escape(str(run))}</h1>"
+    per_scene = plot_per_scene(result.methods, result.labels, out / "per_scene.png")
+    parts = [f"<h1>Run report, {html.escape(result.labels['model'])}: {html.escape(str(run))}</h1>"
              f"<table>{rows}</table>",
              _section("Evaluation", _pre(format_eval_table(result))),
              _section("Training curves", _img(curves, "training loss and validation 3D MAE per epoch; "
                                                       "the dashed line is the validation v prior")),
-             _section("Angular error CDF", _img(Path(result["cdf_png"]), f"per-frame 3D angular error, {split} split")),
+             _section("Angular error CDF", _img(Path(str(result.cdf_png)),
+                                                        f"per-frame 3D angular error, {split} split")),
              _section("Per scene", _img(per_scene, "3D MAE per scene and over all frames, "
                                                    "the model beside the baselines"))]
     if ablation is not None:
