@@ -33,9 +33,11 @@ demo: setup
 test-models: setup
 	$(PY) -m ga3ce_prep.testing.mobilesam_random
 
-## make lint: ruff over the whole repository (configured in pyproject.toml).
+## make lint: ruff over the whole repository, then mypy over the modules [tool.mypy] lists (both
+## configured in pyproject.toml).
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 ## make test: set up, lint, then run the test suite on TEST_WORKERS processes (pytest-xdist; 0: one).
 TEST_WORKERS ?= 2
