@@ -226,8 +226,7 @@ class BucketBatchSampler(Sampler[list[int]]):
         order = rng.permutation(n)
         if self.batching == "mixed":
             ranked = order[np.argsort(self.counts[order], kind="stable")]
-            out = [b for g in np.array_split(ranked, max(1, min(self.groups, n // max(bs, 1))))
-                   for b in self._cut(rng.permutation(g))]
+            out = [b for g in np.array_split(ranked, self._n_groups()) for b in self._cut(rng.permutation(g))]
         else:
             if self.batching == "sorted" and n:
                 w = bs * self.window
@@ -239,5 +238,12 @@ class BucketBatchSampler(Sampler[list[int]]):
     def __iter__(self) -> Iterator[list[int]]:
         return (b.tolist() for b in self.batches())
 
+    def _n_groups(self) -> int:
+        """Count groups of "mixed": `groups`, fewer when there are not enough frames for a batch each."""
+        return max(1, min(self.groups, len(self.counts) // max(self.batch_size, 1)))
+
     def __len__(self) -> int:
-        return len(self.batches())
+        n, bs = len(self.counts), self.batch_size
+        sizes = [len(g) for g in np.array_split(np.arange(n), self._n_groups())] \
+            if self.batching == "mixed" and self.shuffle else [n]
+        return sum(s // bs if self.drop_last else -(-s // bs) for s in sizes)

@@ -123,11 +123,9 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         # dataset by design (the paper's Table 2), so its fingerprint is not checked
         log.info("%s has no training frames: evaluating %s across datasets", st.path, checkpoint)
         force = True
-    elif force:
-        for p in check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None, force=True):
-            log.warning("evaluating despite a mismatch (--force): %s", p)
     else:
-        check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None)
+        for p in check_checkpoint(ckpt, checkpoint, store_fingerprint(st), None, force=force):
+            log.warning("evaluating despite a mismatch (--force): %s", p)
     profile = DatasetProfile.for_store(st)
     fs = scored_frames(st, split, profile.eval_frames if frames == "auto" else frames, data, ContextDataset(st, split))
     ds = ContextDataset(st, split, only=fs.rows)
