@@ -65,7 +65,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     """Run synth -> prep -> train -> eval on the embedded synthetic worlds and print the 3D MAE of
     the paper's GA3CE, of ours, of the model without objects, of the v prior and of the
     learning-free baselines, on test sessions of rooms seen in training and on a transfer world of
-    unseen rooms and another camera. About ten minutes on 2 CPU cores; rerunning reuses every step."""
+    unseen rooms and another camera. About 12 minutes on 2 CPU cores; rerunning reuses every step."""
     from .model import METHODS, ModelConfig
     from .pipeline import run_pipeline
     from .train import TrainConfig, ablate, evaluate, format_eval_table
