@@ -76,9 +76,9 @@ class OraclePose(PoseBackend):
     @dataclass(frozen=True, kw_only=True)
     class Params(TruthParams):
         seed: int = 0  # noise seed (combined with the frame id)
-        sigma_body: float = param(0.02, minimum=0)  # metres, per-axis joint noise off the face
+        sigma_body: float = param(0.039, minimum=0)  # metres, per-axis joint noise off the face (MeTRAbs, 3DPW)
         sigma_face: float = param(
-            0.04, minimum=0)  # metres, per-axis noise of the 6 face joints (nose, eyes, ears, head top)
+            0.039, minimum=0)  # metres, per-axis noise of the 6 face joints (nose, eyes, ears, head top)
         scale_sigma: float = param(0.0, minimum=0)  # log-scale std of a per-frame scale about the camera centre
         scale_bias: float = param(
             1.0, exclusiveMinimum=0)  # mean per-frame scale (an estimator's systematic size error)
