@@ -6,7 +6,7 @@ completed as the `synthetic` pipeline completes it, and the head stage (`stages/
 is run with one fallback at a time. Truth: the head box centre back-projected at the median of the
 exact rendered depth in the same windows (t_object as the head stage defines it, on perfect
 depth). "measured" is the head stage on the untouched sensor depth, for reference. The pose comes
-from the `oracle` pose backend's noise model at two settings: the demo's RGB-D-refined pose
+from the `oracle` pose backend's noise model at two settings: an RGB-D-refined pose
 (1 cm per joint, no scale error) and a monocular estimator's (2 cm body, 4 cm face, a per-frame
 scale about the camera centre with 10% log-std: its distance is off by the size error).
 
@@ -25,7 +25,7 @@ import click
 import numpy as np
 
 POSES = {  # label -> noisy_pose keyword arguments
-    "RGB-D pose (demo: 1 cm)": {"sigma_body": 0.01, "sigma_face": 0.01},
+    "RGB-D pose (1 cm)": {"sigma_body": 0.01, "sigma_face": 0.01},
     "monocular pose (2/4 cm, 10% scale)": {"sigma_body": 0.02, "sigma_face": 0.04, "scale_sigma": 0.1},
 }
 
