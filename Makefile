@@ -45,10 +45,11 @@ test: setup models test-models lint
 	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 ## make prep DATASET=gfie DATA=/path/to/GFIE_dataset [OUT=store.zarr] [MODELS=dir of your model files]
+## (DATASET: a bundled pipeline's name, `ga3ce-prep run --help` lists them, or a pipeline file)
 prep: setup
-	$(CLI) run --pipeline pipelines/$(DATASET).yaml --data $(DATA) --out $(OUT) --models $(MODELS)
+	$(CLI) run --pipeline $(DATASET) --data $(DATA) --out $(OUT) --models $(MODELS)
 
-## make schema: regenerate schemas/pipeline.schema.json from the backends' Params dataclasses.
+## make schema: regenerate ga3ce_prep/schemas/pipeline.schema.json from the backends' Params dataclasses.
 schema: setup
 	$(PY) -c 'from ga3ce_prep.pipeline.schema import main; main(["--write"])'
 

@@ -14,7 +14,7 @@ attrs["names"] (a `*_source` names the way each frame's value came about: the st
 `sources`). Camera frame,
 metres, x right, y down, z forward. Unknown values are NaN. The root attrs hold `schema_version`,
 the dataset, the pipeline and its hash, per-stage provenance, the package version
-(schemas/store.schema.json) and the integrity record: the size and SHA-256 of every other file of
+(ga3ce_prep/schemas/store.schema.json) and the integrity record: the size and SHA-256 of every other file of
 the store, and a digest of the root attributes themselves (`verify_store` checks it). Arrays are
 chunked along the first axis only (Zstd).
 
@@ -38,6 +38,7 @@ import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
 
+from . import bundled
 from .errors import StoreError
 from .frames import SPLITS
 from .skeleton import N_JOINTS
@@ -51,7 +52,6 @@ SOURCE_STAGES: tuple[str, ...] = ("head", "view")  # stages whose per-frame sour
 # The root attributes of a store from its creation (`StoreWriter`) to its commit: ours, unfinished
 # (a rerun may replace it; pipeline/run.py refuses to replace a Zarr store with other attributes).
 UNFINISHED = {"ga3ce_prep": "unfinished"}
-SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "store.schema.json"
 
 # name -> (dtype, trailing shape). `str` = variable-length UTF-8.
 FRAME_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {
@@ -105,7 +105,7 @@ class StoreWriter:
     `append_frames(frames, objects)` takes dicts of arrays with the schema's names; `obj_start`
     is filled in by the writer from `obj_count`. Rows are buffered to whole chunks, so memory
     stays bounded whatever the dataset size. `close(attrs)` writes the remaining rows, then the
-    root attributes (validated against schemas/store.schema.json) with the integrity record of
+    root attributes (validated against ga3ce_prep/schemas/store.schema.json) with the integrity record of
     every file written.
     """
 
@@ -372,10 +372,10 @@ def _damaged(path: str, problems: list[str], attrs: dict[str, Any] | None = None
 
 
 def validate_store_attrs(attrs: dict[str, Any]) -> None:
-    """Check root attributes against schemas/store.schema.json (raises StoreError naming the key)."""
+    """Check root attributes against ga3ce_prep/schemas/store.schema.json (raises StoreError naming the key)."""
     import jsonschema
 
-    schema = json.loads(SCHEMA_FILE.read_text())
+    schema = bundled.schema("store")
     try:
         jsonschema.validate(json.loads(json.dumps(attrs)), schema)
     except jsonschema.ValidationError as e:

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from ga3ce_prep.bundled import pipeline_text
 from ga3ce_prep.cli import main
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.pipeline import run_pipeline
@@ -421,7 +422,7 @@ def test_eval_refuses_a_foreign_checkpoint_and_bad_splits(synth_world, tmp_path,
 def test_relative_paths_are_recorded_absolute(synth_world, tmp_path, ga3ce, monkeypatch):
     monkeypatch.chdir(tmp_path)
     shutil.copytree(synth_world, "data")
-    shutil.copy(Path(__file__).parent.parent / "pipelines" / "synthetic.yaml", "p.yaml")
+    Path("p.yaml").write_text(pipeline_text("synthetic"))
     code, _, err = _run(ga3ce, "data", "s.zarr", "stages.view.params.truth=data/truth.h5", pipeline="p.yaml")
     assert code == 0, err
     a = open_store(tmp_path / "s.zarr").attrs

@@ -4,16 +4,16 @@ import numpy as np
 import pytest
 import yaml
 
+from ga3ce_prep.bundled import pipeline_names, pipeline_text
 from ga3ce_prep.errors import ConfigError, ModelFileError
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
-from ga3ce_prep.pipeline.config import PIPELINES_DIR
 
 
 def _base():
-    return yaml.safe_load((PIPELINES_DIR / "synthetic.yaml").read_text())
+    return yaml.safe_load(pipeline_text("synthetic"))
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in PIPELINES_DIR.glob("*.yaml")))
+@pytest.mark.parametrize("name", pipeline_names())
 def test_bundled_pipelines_are_valid(name, tmp_path):
     conf = load_pipeline(name, tmp_path, check_files=False)
     assert conf.name == name
@@ -61,7 +61,7 @@ def test_missing_stage_and_bad_yaml(tmp_path):
 
 def test_off_and_on_stay_words_in_files_and_overrides(tmp_path):
     # YAML 1.1 reads off/on/yes/no as booleans, which the enums `reuse: off` and `io_binding: on` refuse
-    text = (PIPELINES_DIR / "synthetic-minisam.yaml").read_text()
+    text = pipeline_text("synthetic-minisam")
     text = text.replace("decoder_mode: fast", "decoder_mode: fast\n      reuse: off\n      io_binding: on")
     (tmp_path / "p.yaml").write_text(text)
     params = load_pipeline(tmp_path / "p.yaml", tmp_path, check_files=False).stages["objects"].params

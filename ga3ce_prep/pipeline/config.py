@@ -1,6 +1,7 @@
-"""Pipeline files (`pipelines/<name>.yaml`): load, validate against schemas/pipeline.schema.json
-(generated from the backends' `Params` dataclasses: pipeline/schema.py), fill in defaults, resolve
-file parameters, and check everything a run needs before any work.
+"""Pipeline files (a path, or a bundled name: `ga3ce_prep/pipelines/<name>.yaml`): load, validate
+against ga3ce_prep/schemas/pipeline.schema.json (generated from the backends' `Params` dataclasses:
+pipeline/schema.py), fill in defaults, resolve file parameters, and check everything a run needs
+before any work.
 
 Each backend's `Params` dataclass is the one source of its parameters: the defaults filled in and
 the file parameters resolved here are read from it (`params.defaults`, `params.file_fields`), not
@@ -23,13 +24,12 @@ from typing import Any
 
 import yaml
 
+from .. import bundled
 from ..errors import ConfigError, ModelFileError
 from ..params import defaults, file_fields, load_yaml
 from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
-from .schema import SCHEMA_FILE, RunParams
-
-PIPELINES_DIR = Path(__file__).resolve().parent.parent.parent / "pipelines"
+from .schema import RunParams
 
 
 @dataclass
@@ -66,7 +66,7 @@ class PipelineConfig:
 
 
 def schema() -> dict[str, Any]:
-    return json.loads(SCHEMA_FILE.read_text())
+    return bundled.schema("pipeline")
 
 
 def _key(path) -> str:
@@ -74,14 +74,15 @@ def _key(path) -> str:
 
 
 def resolve_pipeline_path(pipeline: str | Path) -> Path:
-    """A pipeline file path; a bare name like "gfie" means pipelines/gfie.yaml of this package."""
+    """A pipeline file path; a bare name like "gfie" (no file of that name here) means the bundled
+    pipeline ga3ce_prep/pipelines/gfie.yaml."""
     p = Path(pipeline)
     if p.is_file():
         return p
-    if p.suffix == "" and (PIPELINES_DIR / f"{p.name}.yaml").is_file():
-        return PIPELINES_DIR / f"{p.name}.yaml"
-    known = ", ".join(sorted(q.stem for q in PIPELINES_DIR.glob("*.yaml")))
-    raise ConfigError(f"pipeline file {p} not found (bundled pipelines: {known})")
+    bundled_file = bundled.pipeline_file(str(pipeline)) if p.suffix == "" and p.name == str(pipeline) else None
+    if bundled_file is not None:
+        return bundled_file
+    raise ConfigError(f"pipeline file {p} not found (bundled pipelines: {', '.join(bundled.pipeline_names())})")
 
 
 def _parse_override(item: str) -> tuple[list[str], Any]:
@@ -121,7 +122,8 @@ def validate(raw: Any, where: str) -> None:
     # an `if/then` branch reports the params error itself; drop the generic ones
     lines = [f"  {_key(e.absolute_path)}: {e.message}" for e in errors[:12]]
     more = f"\n  ... and {len(errors) - 12} more" if len(errors) > 12 else ""
-    raise ConfigError(f"{where} is not a valid pipeline (schemas/pipeline.schema.json):\n" + "\n".join(lines) + more)
+    raise ConfigError(f"{where} is not a valid pipeline (ga3ce_prep/schemas/pipeline.schema.json):\n"
+                      + "\n".join(lines) + more)
 
 
 def model_dir(models: str | Path | None = None) -> Path:

@@ -2,8 +2,9 @@
 `Params` dataclass (`ga3ce_prep.stages.BACKENDS`), the run settings (`RunParams`) and the dataset
 adapters (`ga3ce_prep.datasets.ADAPTERS`).
 
-`schemas/pipeline.schema.json` is its committed copy, for editors and other tools, and the copy the
-loader validates against; the defaults and file parameters the loader fills in come from the
+`ga3ce_prep/schemas/pipeline.schema.json` is its committed copy, shipped in the package (read with
+importlib.resources: ga3ce_prep/bundled.py), for editors and other tools, and the copy the loader
+validates against; the defaults and file parameters the loader fills in come from the
 dataclasses themselves. `make schema` rewrites it; a test fails while it is stale.
 """
 from __future__ import annotations
@@ -17,7 +18,8 @@ from typing import Any
 
 from ..params import json_schema, param
 
-SCHEMA_FILE = Path(__file__).resolve().parent.parent.parent / "schemas" / "pipeline.schema.json"
+# the package's copy, which `make schema` rewrites (in a checkout)
+SCHEMA_FILE = Path(__file__).resolve().parent.parent / "schemas" / "pipeline.schema.json"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -56,7 +58,7 @@ def build_schema() -> dict[str, Any]:
     run["default"] = {}
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "$id": "https://github.com/ga3ce-prep/ga3ce-prep/schemas/pipeline.schema.json",
+        "$id": "https://github.com/ga3ce-prep/ga3ce-prep/ga3ce_prep/schemas/pipeline.schema.json",
         "title": "ga3ce-prep pipeline file",
         "description": "One preprocessing pipeline: the dataset adapter, a backend and its parameters per stage, "
                        "run settings. Generated from the code (ga3ce_prep/pipeline/schema.py: `make schema`); "
@@ -92,7 +94,8 @@ def schema_text() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="Generate schemas/pipeline.schema.json from the backends' Params.")
+    ap = argparse.ArgumentParser(
+        description="Generate ga3ce_prep/schemas/pipeline.schema.json from the backends' Params.")
     ap.add_argument("--write", action="store_true", help=f"rewrite {SCHEMA_FILE}")
     ap.add_argument("--check", action="store_true", help="exit 1 if the committed file is stale")
     args = ap.parse_args(argv)
