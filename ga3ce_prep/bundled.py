@@ -38,6 +38,13 @@ def pipeline_file(name: str) -> Path | None:
     return _as_path(resource) if name in pipeline_names() else None
 
 
+def name_of(path: str | Path) -> str | None:
+    """The bundled name of the pipeline file at `path` if it is one of this package's, else None."""
+    name = Path(path).stem
+    bundled_file = pipeline_file(name) if Path(path).suffix == ".yaml" else None
+    return name if bundled_file is not None and bundled_file.resolve() == Path(path).resolve() else None
+
+
 def pipeline_text(name: str) -> str:
     """The bundled pipeline `name`'s YAML (KeyError naming the bundled names if there is none)."""
     if name not in pipeline_names():

@@ -85,7 +85,7 @@ def cli() -> None:
     \b
     Typical use:
       ga3ce-prep synth --format gfie --out data/synth        # or bring GFIE, CAD-120, GAFA
-      ga3ce-prep run --pipeline pipelines/synthetic.yaml --data data/synth --out synth.zarr
+      ga3ce-prep run --pipeline synthetic --data data/synth --out synth.zarr   # or a YAML file
       ga3ce-prep train --store synth.zarr --out runs/full
       ga3ce-prep eval --store synth.zarr --checkpoint runs/full/best.pt
 

@@ -4,8 +4,8 @@ paper runs its experiments.
 synth: a GFIE-format world whose rooms are each recorded in several sessions, split by session, so
 the test rooms were seen in training (the paper's GFIE and GAFA protocol), and a small transfer
 world (`synth --preset transfer`: CAD-120 format, unseen rooms, another camera: the paper's Table 2)
--> prep (pipelines/synthetic.yaml: sensor depth completion, the weight-free geometric segmenter,
-head position; oracle pose and view) -> three short training runs in `ablate`'s layout: the
+-> prep (the bundled pipeline `synthetic`: sensor depth completion, the weight-free geometric
+segmenter, head position; oracle pose and view) -> three short training runs in `ablate`'s layout: the
 paper's GA3CE, ours, and the model without objects -> evaluation of the three against the v prior
 and the learning-free baselines on the seen-room test split and on the transfer world.
 
@@ -85,7 +85,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
                        "seed": seed})
     _done(t0)
 
-    t0 = _step(2, f"preprocessing (pipelines/synthetic.yaml) -> {store}" + (f", {tstore}" if transfer_rooms else ""))
+    t0 = _step(2, f"preprocessing (pipeline synthetic) -> {store}" + (f", {tstore}" if transfer_rooms else ""))
     click.echo(run_pipeline("synthetic", data=data, out=store, workers=workers).format())
     if transfer_rooms:
         click.echo(run_pipeline("synthetic", data=tdata, out=tstore, workers=workers,

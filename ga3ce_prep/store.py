@@ -356,12 +356,13 @@ def _verify_once(path: str) -> None:
 
 def rebuild_hint(path: str, attrs: dict[str, Any] | None = None) -> str:
     """How to rebuild the store at `path`: REBUILD, with the command as its root attributes record it
-    (pipeline file, dataset root, --limit) when they are readable."""
+    (pipeline file, or its bundled name; dataset root, --limit) when they are readable."""
     try:
         pipeline, root = attrs["pipeline"]["file"], attrs["dataset"]["root"]
         limit = (attrs.get("run") or {}).get("limit")
     except (KeyError, TypeError):
         return REBUILD
+    pipeline = bundled.name_of(pipeline) or pipeline
     command = f"ga3ce-prep run --pipeline {pipeline} --data {root} --out {path}{f' --limit {limit}' if limit else ''}"
     return REBUILD.replace(", or restore", f": `{command}`, with the --set options it had; or restore")
 

@@ -1,4 +1,4 @@
-"""The bundled paper pipelines (`pipelines/gfie.yaml`, `cad120.yaml`, `gafa.yaml`) end to end on
+"""The bundled paper pipelines (`ga3ce_prep/pipelines/gfie.yaml`, `cad120.yaml`, `gafa.yaml`) end to end on
 the synthetic world in each format, with tiny models of the paper's models' interfaces in a model
 folder (`ga3ce_prep.testing.paper_models`); a missing or mismatching model stops before any work."""
 import shutil

@@ -1,5 +1,8 @@
 """Pipeline files: schema validation naming the key, defaults, files checked before any work."""
 
+from pathlib import Path
+
+import click
 import numpy as np
 import pytest
 import yaml
@@ -20,6 +23,27 @@ def test_bundled_pipelines_are_valid(name, tmp_path):
     assert conf.shard_size >= 1
     assert set(conf.stages) == {"input", "depth", "objects", "head", "pose", "view"}
 
+
+
+def test_bundled_names_resolve_from_the_package_and_a_path_still_works(tmp_path, monkeypatch):
+    import ga3ce_prep
+    from ga3ce_prep.bundled import name_of
+    from ga3ce_prep.pipeline.cli import run
+    from ga3ce_prep.pipeline.config import resolve_pipeline_path
+
+    package = Path(ga3ce_prep.__file__).parent
+    assert {"synthetic", "gfie", "cad120", "gafa", "folder"} <= set(pipeline_names())
+    assert resolve_pipeline_path("gfie") == package / "pipelines" / "gfie.yaml"
+    assert name_of(package / "pipelines" / "gfie.yaml") == "gfie"
+    monkeypatch.chdir(tmp_path)
+    Path("gfie.yaml").write_text(pipeline_text("synthetic"))
+    assert resolve_pipeline_path("gfie.yaml") == Path("gfie.yaml") and name_of("gfie.yaml") is None
+    Path("gfie").write_text(pipeline_text("synthetic"))  # a file of the name here wins
+    assert resolve_pipeline_path("gfie") == Path("gfie")
+    with pytest.raises(ConfigError, match="bundled pipelines: cad120, .*synthetic"):
+        resolve_pipeline_path("sub/synthetic")
+    help_text = run.get_help(click.Context(run, terminal_width=1000, max_content_width=1000))
+    assert all(n in help_text for n in pipeline_names())
 
 def test_defaults_are_filled_in_and_data_paths_resolved(tmp_path):
     conf = load_pipeline("synthetic", tmp_path, check_files=False)

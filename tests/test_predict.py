@@ -97,7 +97,7 @@ def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):
 
 
 def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
-    """pipelines/folder-real.yaml on a two-frame `folder` recording (the astronaut and its mirror,
+    """ga3ce_prep/pipelines/folder-real.yaml on a two-frame `folder` recording (the astronaut and its mirror,
     a flat 1.6 m depth map): the registry models only, frames kept with v from the face."""
     from ga3ce_prep.pipeline import run_pipeline
     from ga3ce_prep.store import open_store

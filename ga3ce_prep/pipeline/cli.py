@@ -7,11 +7,13 @@ from pathlib import Path
 
 import click
 
+from ..bundled import pipeline_names
+
 
 @click.command("run", context_settings={"show_default": True})
 @click.option("--pipeline", "-p", required=True,
-              help="Pipeline file (pipelines/<name>.yaml), or a bundled name: synthetic, synthetic-oracle, gfie, "
-                   "cad120, gafa, folder.")
+              help="A pipeline file (YAML), or the name of one the package carries (ga3ce_prep/pipelines/): "
+                   + ", ".join(pipeline_names()) + ".")
 @click.option("--data", "-d", required=True, type=click.Path(file_okay=False),
               help="Dataset root, in the format the pipeline's dataset.format names.")
 @click.option("--out", "-o", required=True,

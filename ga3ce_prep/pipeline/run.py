@@ -226,7 +226,7 @@ def _checked_config(pipeline: str | Path | dict[str, Any], data_root: Path, out:
 def _check_output(out: Location, conf: PipelineConfig, data_root: Path, overwrite: bool) -> None:
     """Refuse to replace what a run must not: anything at `out` but a Zarr store; with `overwrite`
     false, also a Zarr store that is not a ga3ce-prep store (root attributes valid against
-    schemas/store.schema.json), or one of another pipeline (name) or dataset (format and root).
+    ga3ce_prep/schemas/store.schema.json), or one of another pipeline (name) or dataset (format and root).
     StoreError saying what is there and how to proceed."""
     if is_remote(out):
         exists, is_store = _probe(str(out))
@@ -401,7 +401,7 @@ def _run_key(conf: PipelineConfig, data_root: Path, shards: list[Shard]) -> str:
 
 
 def provenance(conf: PipelineConfig, data_root: Path, **run: Any) -> dict[str, Any]:
-    """The store's root attributes (schemas/store.schema.json): dataset, pipeline, per-stage backend,
+    """The store's root attributes (ga3ce_prep/schemas/store.schema.json): dataset, pipeline, per-stage backend,
     parameters, model SHA-256 and what the backend adds (`Backend.provenance`), package version,
     run settings."""
     stages = {}

@@ -26,7 +26,7 @@ Adding a backend (e.g. `depth/onnx`):
    files, and its unit and reason in a trailing comment; inherit shared groups such as
    `RuntimeParams` or `TruthParams`), and its per-frame method reading `self.p.<name>`.
 2. Register "stage/name" -> "module:Class" in `ga3ce_prep.stages.BACKENDS`.
-3. `make schema` regenerates schemas/pipeline.schema.json from the dataclasses (a test fails
+3. `make schema` regenerates ga3ce_prep/schemas/pipeline.schema.json from the dataclasses (a test fails
    until it is current). The dataclass is the one home of each parameter and its default: the
    loader fills defaults in from it and the backend reads `self.p` only.
 

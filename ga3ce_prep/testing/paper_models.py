@@ -1,5 +1,5 @@
 """Tiny models with the interfaces of the paper's models, for the tests and benchmarks: a model
-folder that `pipelines/gfie.yaml`, `cad120.yaml` and `gafa.yaml` run end to end with (`{models}`).
+folder that `ga3ce_prep/pipelines/gfie.yaml`, `cad120.yaml` and `gafa.yaml` run end to end with (`{models}`).
 
 Each model's output is a known function of its input, so a test can check what the pipeline did:
 - MobileSAM: `scripted.pooling_encoder` + `scripted.scripted_decoder` on a quadrant label image;
