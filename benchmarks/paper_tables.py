@@ -9,7 +9,7 @@ CAD-120 table (Table 2) tests a GFIE-trained model on unseen scenes with another
 - the transfer world: `ga3ce-prep synth --preset transfer` (CAD-120 format, new rooms, another
   camera), on which the models trained on a seen-rooms world are evaluated (Table 2).
 
-Each world is made, prepared (`pipelines/synthetic.yaml`) and trained with `ablate` (the rows of
+Each world is made, prepared (`ga3ce_prep/pipelines/synthetic.yaml`) and trained with `ablate` (the rows of
 Tables 4 and 5, or a few of them) under OUT/<phase>-<world>/runs-<batching>[-lr<lr>]/<row>/seed<k>;
 every step is cached, so rerunning continues. `--phase choose` reports the validation split of the
 choosing worlds (where batching and the learning rate are compared); `--phase report` the test split
