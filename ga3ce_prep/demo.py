@@ -66,7 +66,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     the paper's GA3CE, of ours, of the model without objects, of the v prior and of the
     learning-free baselines, on test sessions of rooms seen in training and on a transfer world of
     unseen rooms and another camera. About 12 minutes on 2 CPU cores; rerunning reuses every step."""
-    from .model import METHODS, ModelConfig
+    from .model import METHODS, ModelConfig, resolve
     from .pipeline import run_pipeline
     from .train import TrainConfig, ablate, evaluate, format_eval_table
     from .train.evaluate import BASELINE_NOTES
@@ -114,7 +114,8 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
         _done(t0)
 
     labels = result.labels
-    notes = {"model": METHODS["ga3ce"].summary, "ours": f"our design: {METHODS['ours'].summary}",
+    ours = resolve("ours")
+    notes = {"model": METHODS["ga3ce"].summary, "ours": f"ours, today the design {ours}: {METHODS[ours].summary}",
              "no_objects": "the same network without the objects (the paper's appearance + pose row)",
              **BASELINE_NOTES}
     click.echo("\nthe rows:")

@@ -282,10 +282,11 @@ def test_pointer_first_pass_is_the_network_without_objects():
     torch.testing.assert_close(p.sum(-1), torch.ones(5))
     assert (p[:, 1:][~mask] == 0).all()                      # padding gets nothing
     # checkpoints written before the pointer existed hold the paper's model; those written before
-    # methods had names are named by their output
-    old = {k: v for k, v in ModelConfig().to_dict().items() if k not in ("method", "output", "pointer_kappa")}
+    # methods had names are named by their output (the pointer of then: g0 trained jointly)
+    old = {k: v for k, v in ModelConfig().to_dict().items()
+           if k not in ("method", "output", "pointer_kappa", "pointer_g0")}
     assert ModelConfig.from_dict(old).output == "regress" and ModelConfig.from_dict(old).method == "ga3ce"
-    assert ModelConfig.from_dict({**old, "output": "pointer"}).method == "ours"
+    assert ModelConfig.from_dict({**old, "output": "pointer"}).method == "pointer-joint"
     with pytest.raises(ValueError, match="output"):
         ModelConfig(output="select")
 

@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ConfigError
-from ga3ce_prep.model import GA3CE, METHODS, ModelConfig
+from ga3ce_prep.model import GA3CE, ModelConfig
 from ga3ce_prep.store import StoreWriter
 from ga3ce_prep.testing.toy_store import ATTRS as TOY_ATTRS
 from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
@@ -186,7 +186,8 @@ def test_ablate_table(store, tmp_path):
     rows = ["appearance", "no-objects", "no-pose", "full", "ours"]   # no-pose: no paper figure
     s = ablate(base, tmp_path / "abl", rows=rows)
     assert [r["name"] for r in s["rows"]] == rows
-    assert [r["label"] for r in s["rows"]][3:] == ["GA3CE (paper) (full)", "ours"]
+    assert [r["label"] for r in s["rows"]][3:] == ["GA3CE (paper) (full)", "pointer-frozen (ours)"]
+    assert [r["design"] for r in s["rows"]] == ["ga3ce"] * 4 + ["pointer-frozen"]   # the alias row, resolved
     assert "ours" in default_rows("ga3ce") and "ga3ce" not in default_rows("ga3ce") and "ga3ce" in default_rows("ours")
     assert s["rows"][0]["ratio"] == pytest.approx(1.0, abs=1e-5)
     t = s["table"]
@@ -196,9 +197,9 @@ def test_ablate_table(store, tmp_path):
     assert "13.10" in t
     assert "11.10" in t
     assert ("the full model is best" in t) == s["full_best"]
-    assert "The other named models" in t
+    assert "The other designs" in t and "pointer-frozen (ours)" in t
     cfg = load_checkpoint(tmp_path / "abl" / "ours" / "seed0" / "best.pt")["config"]["model"]
-    assert (cfg["method"], cfg["output"]) == ("ours", "pointer")
+    assert (cfg["method"], cfg["output"], cfg["pointer_g0"]) == ("pointer-frozen", "pointer", "frozen")
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
     # eval of the full row scores the no-objects row beside it (what the objects add), and says so
@@ -208,7 +209,7 @@ def test_ablate_table(store, tmp_path):
     m = r.methods
     assert m["no_objects"].mae3d == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)
     assert m["ours"].mae3d == pytest.approx(s["rows"][4]["mae3d"], abs=1e-9)   # ours beside it, by name
-    assert r.labels["ours"] == "ours" and r.beats["ours"] == (m["model"].mae3d < m["ours"].mae3d)
+    assert r.labels["ours"] == "pointer-frozen (ours)" and r.beats["ours"] == (m["model"].mae3d < m["ours"].mae3d)
     assert m["model"].mae3d == pytest.approx(s["rows"][3]["mae3d"], abs=1e-9)
     assert r.beats["no_objects"] == (m["model"].mae3d < m["no_objects"].mae3d)
     table = format_eval_table(r)
@@ -242,17 +243,17 @@ def test_cli_train_eval(store, tmp_path):
     assert res.exit_code == 0, res.output
     assert "GA3CE (paper), rotation=none, encoding=standard " in res.output and "(model)" not in res.output
     assert "head direction from pose" in res.output
-    # --model ours: our design by name, recorded in the checkpoint and named in the table
+    # --model ours: the alias of our current design, recorded and named in the table by its fixed name
     res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(tmp_path / "ours"), "--epochs", "1",
                               "--train-frames", "32", "--val-frames", "16", "--no-progress", "--model", "ours",
                               "--model-set", "num_encoder_layers=1", "--model-set", "num_decoder_layers=1"])
     assert res.exit_code == 0, res.output
     cfg = load_checkpoint(tmp_path / "ours" / "best.pt")["config"]["model"]
-    assert (cfg["method"], cfg["output"]) == ("ours", "pointer")
+    assert (cfg["method"], cfg["output"]) == ("pointer-frozen", "pointer")
     res = runner.invoke(cli, ["eval", "--store", str(store), "--checkpoint", str(tmp_path / "ours" / "best.pt"),
                               "--cdf", "none", "--no-scenes"])
     assert res.exit_code == 0, res.output
-    assert "\nours " in res.output and "GA3CE (paper)" not in res.output
+    assert "\npointer-frozen (ours) " in res.output and "GA3CE (paper)" not in res.output
     res = runner.invoke(cli, ["train", "--store", str(store), "--out", str(out), "--model", "ours",
                               "--ablation", "ga3ce"])
     assert res.exit_code != 0 and "drop --model ours" in res.output
@@ -298,7 +299,7 @@ def test_frozen_g0_is_the_no_objects_twin(store, tmp_path):
     assert all(not torch.equal(final[k], v) for k, v in init.items() if k.startswith("pointer."))   # trained
     r = evaluate(store, run / "best.pt", split="test", cdf_path=None,
                  no_objects=run / "g0" / "best.pt")
-    name = "ours" if METHODS["ours"].config.get("pointer_g0") == "frozen" else "ours, pointer_g0=frozen"
+    name = "pointer-frozen (ours)"   # ours names pointer-frozen today (tests/test_designs.py)
     assert r.labels == {**r.labels, "model": name, "no_objects": "no objects (app. + pose)"}
     assert run_done(run, 2) and run_done(run / "g0", 2)
     # resumed when finished, the g0 stage is reused; resumed with more epochs, both continue

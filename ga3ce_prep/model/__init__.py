@@ -4,14 +4,14 @@ from .egocentric import EgocentricContext, egocentric_transform, pose_normalizat
 from .encoding import ENCODINGS, PointEncoding, d3_encoding, fourier_features
 from .ga3ce import GA3CE, ModelConfig, model_label
 from .loss import angular_loss
-from .methods import DEFAULT_METHOD, METHODS, Method
+from .methods import ALIASES, DEFAULT_METHOD, METHODS, Method, resolve
 from .rotation import ROTATIONS, axis_angle_rotation, cyclotorsion_rotation, identity_rotation, rotation
 from .transformer import GazeTransformer, MLPHead, gaze_cone_bias
 
 __all__ = [
     "EgocentricContext", "egocentric_transform", "pose_normalization", "ENCODINGS", "PointEncoding",
-    "d3_encoding", "fourier_features", "GA3CE", "ModelConfig", "angular_loss", "DEFAULT_METHOD", "METHODS",
-    "Method", "model_label", "ROTATIONS",
+    "d3_encoding", "fourier_features", "GA3CE", "ModelConfig", "angular_loss", "ALIASES", "DEFAULT_METHOD",
+    "METHODS", "Method", "resolve", "model_label", "ROTATIONS",
     "axis_angle_rotation", "cyclotorsion_rotation", "identity_rotation", "rotation",
     "GazeTransformer", "MLPHead", "gaze_cone_bias",
 ]

@@ -5,11 +5,11 @@
     F_object = D3(P'_obj) (256 each), after a learned null token
     output "regress" (the paper's, the default; method "ga3ce"):
         g' = MLP(decoder(E_subject | encoder(F_object), gaze-cone bias)),  g = normalise(R^T g' + v)
-    output "pointer" (method "ours"; docs/training.md "The output"):
+    output "pointer" (designs "pointer-joint", "pointer-frozen"; `ours` today; docs/training.md "The output"):
         g0' = MLP(decoder(E_subject | encoder(null token))),  g0 = normalise(R^T g0' + v)
         p = softmax(q(E_subject) . k([null, F_object]) + kappa (cos(g0, u_i) - 1)),  g = p_null g0 + sum p_i u_i
 
-`ModelConfig` holds every architectural choice and ablation switch, and the name of the method
+`ModelConfig` holds every architectural choice and ablation switch, and the fixed name of the design
 (model/methods.py) it was made from; it is a plain dataclass saved in checkpoints as a dict.
 Units: metres, camera frame (x right, y down, z forward).
 """
@@ -24,7 +24,7 @@ from torch import nn
 from ..skeleton import GA3CE_JOINTS, HEAD_WIDTH_PAIR
 from .egocentric import egocentric_transform
 from .encoding import ENCODINGS, PointEncoding
-from .methods import DEFAULT_METHOD, METHODS, NO_OBJECTS_LABEL
+from .methods import ALIASES, DEFAULT_METHOD, METHODS, NO_OBJECTS_LABEL, aliases_of, resolve, saved_design
 from .rotation import ROTATIONS
 from .transformer import GazeTransformer, MLPHead, ObjectPointer, gaze_cone_bias
 
@@ -39,8 +39,9 @@ class ModelConfig:
     method's config."""
 
     method: str = (
-        # the named method (model/methods.py) this config was made from: ga3ce (the
-        # paper's) or ours; it names the model in every table
+        # the fixed name of the design (model/methods.py) this config was made from: ga3ce
+        # (the paper's), pointer-joint or pointer-frozen; an alias (ours) is resolved to the
+        # design it names today. It names the model in every table
         DEFAULT_METHOD)
 
     rotation: str = (
@@ -100,8 +101,11 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list
+        if self.method in ALIASES:   # the design the alias names today is what this config is
+            self.method = ALIASES[self.method]
         if self.method not in METHODS:
-            raise ValueError(f"method must be one of {tuple(METHODS)}, got {self.method!r}")
+            raise ValueError(f"method must be one of {tuple(METHODS)} (or an alias: {tuple(ALIASES)}), "
+                             f"got {self.method!r}")
         if self.rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
         if self.output not in OUTPUTS:
@@ -127,21 +131,25 @@ class ModelConfig:
 
     @classmethod
     def for_method(cls, name: str = DEFAULT_METHOD, **overrides: Any) -> ModelConfig:
-        """Method `name`'s config (model/methods.py), with `overrides` (ablation switches,
+        """Design `name`'s config (model/methods.py; an alias such as `ours` is resolved to the
+        design it names today, which the config records), with `overrides` (ablation switches,
         `--model-set`) on top."""
-        if name not in METHODS:
-            raise ValueError(f"unknown model {name!r}; choose one of {', '.join(METHODS)}")
-        return cls(**{**METHODS[name].config, **overrides, "method": name})
+        design = resolve(name)
+        return cls(**{**METHODS[design].config, **overrides, "method": design})
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
         known = {f.name for f in fields(cls)}
-        d = {"output": "regress", **d}  # configurations saved before the pointer existed are the paper's model
-        if "method" not in d:  # saved before methods had names: the output says which
-            d["method"] = "ours" if d["output"] == "pointer" else "ga3ce"
+        # configurations saved before the pointer existed are the paper's model; before pointer_g0
+        # existed, g0 was trained jointly
+        d = {"output": "regress", "pointer_g0": "joint", **d}
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}")
+        if "method" not in d:  # saved before methods had names: the output says which
+            d["method"] = "ours" if d["output"] == "pointer" else "ga3ce"
+        if d["method"] in ALIASES:   # saved before the fixed names: the design the alias named then
+            d["method"] = saved_design(d["method"], {**asdict(cls()), **d})
         return cls(**d)
 
 
@@ -154,14 +162,16 @@ def model_label(config: ModelConfig) -> str:
     """A config's name in tables: its method's label, or the ablation that leaves the objects or the
     whole context out (the same network whichever method it came from); a design switch that
     differs from the method's own value is named after it ("GA3CE (paper), use_pose=False"). Sizes
-    and scales do not rename a model."""
+    and scales do not rename a model. The design the alias `ours` names today says so:
+    "pointer-frozen (ours)"."""
     if not config.use_context:
         return APPEARANCE_LABEL
     if not config.use_objects:
         return NO_OBJECTS_LABEL
     own = type(config).for_method(config.method)
     changed = [f"{k}={getattr(config, k)}" for k in SWITCHES if getattr(config, k) != getattr(own, k)]
-    return ", ".join([METHODS[config.method].label, *changed])
+    name = METHODS[config.method].label + "".join(f" ({a})" for a in aliases_of(config.method))
+    return ", ".join([name, *changed])
 
 
 class GA3CE(nn.Module):

@@ -1,7 +1,10 @@
 """The paper's ablations (Tables 4 and 5, docs/paper.md): one switch each, trained from the same
 store with the same recipe, evaluated on the same test frames, printed beside the paper's numbers.
-The switches apply to the base model (`ablate --model`, the paper's GA3CE by default); the rows
-`ga3ce` and `ours` train the other named method (model/methods.py) with the same recipe.
+The switches apply to the base model (`ablate --model`, the paper's GA3CE by default); the design
+rows (`ga3ce`, `pointer-joint`, `pointer-frozen`; model/methods.py) and the alias row `ours` train
+that design with the same recipe. Every row records the fixed design it trained ("design"), and
+the alias row's label names it ("pointer-frozen (ours)"). The alias row keeps its folder OUT/ours
+(a finished run there is reused only while it holds the design `ours` names today).
 
 Because our store's view prior is not the paper's, rows are also compared as ratios: our 3D MAE /
 our v prior's, beside the paper's 3D MAE / its appearance-only MAE. That is like for like on GFIE,
@@ -23,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from ..model import METHODS, model_label
+from ..errors import ConfigError
+from ..model import ALIASES, METHODS, ModelConfig, model_label, resolve
 from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
@@ -44,6 +48,7 @@ class Ablation:
     table5: tuple[str, str, str] | None   # (egocentric, cyclotorsion, D3) marks; None = not in Table 5
     paper_gfie: float | None              # the paper's 3D MAE on GFIE, degrees; None = not reported
     paper_gafa: float | None              # the paper's 3D MAE on GAFA, degrees; None = not reported
+    design: str | None = None             # the fixed design a design or alias row trains; None: the base's
 
 
 ABLATIONS: tuple[Ablation, ...] = (
@@ -57,19 +62,50 @@ ABLATIONS: tuple[Ablation, ...] = (
     Ablation("no-cyclotorsion", "no cyclotorsion (axis-angle)", {"rotation": "axis_angle"}, None, ("x", "-", "x"),
              12.1, 20.1),
     Ablation("no-d3", "no D3 (standard encoding)", {"encoding": "standard"}, None, ("x", "x", "-"), 12.9, 20.9),
-    *(Ablation(m.name, m.label, {"method": m.name, **m.config}, None, None, None, None) for m in METHODS.values()),
+    *(Ablation(m.name, m.label, {"method": m.name, **m.config}, None, None, None, None, m.name)
+      for m in METHODS.values()),
+    *(Ablation(alias, f"{design} ({alias})", {"method": design, **METHODS[design].config}, None, None, None, None,
+               design) for alias, design in ALIASES.items()),
 )
 BY_NAME = {a.name: a for a in ABLATIONS}
 
 
 def default_rows(method: str) -> list[str]:
-    """Every row for base method `method`: the paper's ablations and the other methods."""
-    return [a.name for a in ABLATIONS if a.name not in METHODS or a.name != method]
+    """Every row for base design `method` (or an alias of it): the paper's ablations, the paper's
+    GA3CE and `ours`, less the row that would train the base design again."""
+    base = resolve(method)
+    return [a.name for a in ABLATIONS
+            if a.design is None or (a.name in ("ga3ce", *ALIASES) and a.design != base)]
 
 
 def row_label(ab: Ablation, base_model: Any) -> str:
-    """A row's label in the tables: the full row is named by its model ("GA3CE (paper)", "ours")."""
-    return f"{model_label(base_model)} (full)" if ab.name == "full" else ab.label
+    """A row's label in the tables: the full row and the design rows are named by their model's
+    config ("GA3CE (paper) (full)", "pointer-frozen (ours)", with any design switch set on top)."""
+    if ab.name == "full":
+        return f"{model_label(base_model)} (full)"
+    if ab.design is not None:
+        return model_label(dataclasses.replace(base_model, **ab.overrides))
+    return ab.label
+
+
+def saved_design(run: Path) -> str | None:
+    """The fixed design of the model a run folder trained (its config.json; an alias saved before
+    the fixed names resolved to the design it named then), or None when there is none yet."""
+    path = run / "config.json"
+    if not path.is_file():
+        return None
+    return ModelConfig.from_dict(json.loads(path.read_text())["model"]).method
+
+
+def _check_row_design(run: Path, ab: Ablation, want: str) -> None:
+    """ConfigError when the run folder of a design or alias row holds another design than the row
+    trains (the alias has moved on since it was trained)."""
+    have = saved_design(run)
+    if have is not None and have != want:
+        raise ConfigError(f"{run} holds {have!r}, but the row {ab.name!r} trains {want!r}"
+                          + (f" (the design {ab.name!r} names today)" if ab.name in ALIASES else "")
+                          + f": move the folder away (to {run.parent.parent / have / run.name} to keep it as a "
+                          f"{have} row), or use another --out")
 
 
 def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, seeds: list[int] | None = None,
@@ -86,6 +122,10 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise ValueError(f"unknown ablation rows {unknown}; choose from {list(BY_NAME)}")
+    designs = [BY_NAME[n].design for n in names if BY_NAME[n].design is not None]
+    if len(designs) != len(set(designs)):
+        raise ValueError(f"rows {names} train the same design twice (an alias and the design it names: "
+                         f"{', '.join(f'{a} = {d}' for a, d in ALIASES.items())}); keep one")
     seeds = seeds or [base.seed]
     results = []
     prior_mae = math.nan
@@ -96,6 +136,8 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             run = out / name / f"seed{seed}"
             cfg = dataclasses.replace(base, out=str(run), seed=seed,
                                       model=dataclasses.replace(base.model, **ab.overrides))
+            if ab.design is not None and not force:
+                _check_row_design(run, ab, cfg.model.method)
             if cfg.model.g0_frozen and not force:   # its g0 stage is the no-objects row, weight for weight
                 reuse_g0(run, out / "no-objects" / f"seed{seed}", cfg.epochs)
             if force or not run_done(run, cfg.epochs):
@@ -107,7 +149,8 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             prior_mae = r.methods["view_prior"].mae3d
             evals.append(r)
         mae = float(np.mean(maes))
-        row = {"name": name, "label": row_label(ab, base.model), "table4": ab.table4, "table5": ab.table5,
+        row = {"name": name, "design": dataclasses.replace(base.model, **ab.overrides).method,
+               "label": row_label(ab, base.model), "table4": ab.table4, "table5": ab.table5,
                "mae3d": mae, "mae3d_std": float(np.std(maes)) if len(maes) > 1 else None,
                "mae3d_seeds": maes, "ratio": mae / prior_mae,
                "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
@@ -128,7 +171,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
     summary["table"] = format_ablation_table(summary)
     (out / "ablation.json").write_text(json.dumps(summary, indent=2, default=float))
     with open(out / "ablation.csv", "w", newline="") as f:
-        keys = ["name", "label", "mae3d", "mae3d_std", "ratio", "mae2d", "paper_gfie", "paper_gafa",
+        keys = ["name", "design", "label", "mae3d", "mae3d_std", "ratio", "mae2d", "paper_gfie", "paper_gafa",
                 "paper_ratio_gfie", "paper_ratio_gafa"]
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
@@ -174,7 +217,7 @@ def format_ablation_table(summary: dict[str, Any]) -> str:
     out += _table_lines(rows, summary, "table5", ("Ego.", "Cyc.", "D3"))
     ours = [(a, rows[a.name]) for a in ABLATIONS if a.table4 is None and a.table5 is None and a.name in rows]
     if ours:
-        out += ["", "The other named models, same recipe (ga3ce-prep train --model; docs/training.md \"The output\")"]
+        out += ["", "The other designs, same recipe (ga3ce-prep train --model; docs/training.md \"The output\")"]
         out += [f"{r['label']:30s} {'':17s} | {'':16s} | {_num(r['mae3d'], r['mae3d_std']):>13s} {r['ratio']:6.3f}"
                 for a, r in ours]
     out.append("")

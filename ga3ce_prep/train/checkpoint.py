@@ -90,6 +90,19 @@ def config_differences(saved: dict[str, Any], current: dict[str, Any], prefix: s
     return out
 
 
+def _resolved(saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved training config with its model config as this version reads it (an alias saved
+    before the fixed design names resolved to the design it named then, missing keys filled as
+    `ModelConfig.from_dict` fills them), so that only real differences count; as saved if unreadable."""
+    model = saved.get("model")
+    if not isinstance(model, dict):
+        return saved
+    try:
+        return {**saved, "model": ModelConfig.from_dict(model).to_dict()}
+    except (TypeError, ValueError):
+        return saved
+
+
 def check_checkpoint(ckpt: dict[str, Any], path: str | Path, fingerprint: str | None = None,
                      config: dict[str, Any] | None = None, force: bool = False) -> list[str]:
     """Refuse a checkpoint trained on another store or with another configuration.
@@ -102,7 +115,7 @@ def check_checkpoint(ckpt: dict[str, Any], path: str | Path, fingerprint: str | 
         problems.append(f"store fingerprint: checkpoint {str(ckpt.get('store_fingerprint'))[:12]}..., "
                         f"this store {fingerprint[:12]}... (a different or rebuilt store)")
     if config is not None:
-        problems += config_differences(ckpt.get("config", {}), config)
+        problems += config_differences(_resolved(ckpt.get("config", {})), config)
     if problems and not force:
         raise CheckpointError(f"checkpoint {path} does not match:\n  " + "\n  ".join(problems)
                               + "\nUse another --out (or --checkpoint), or pass --force to use it anyway")

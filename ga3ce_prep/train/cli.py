@@ -16,7 +16,7 @@ import click
 from click.core import ParameterSource
 
 from ..errors import ConfigError
-from ..model import DEFAULT_METHOD, ENCODINGS, METHODS, ROTATIONS, ModelConfig
+from ..model import ALIASES, DEFAULT_METHOD, ENCODINGS, METHODS, ROTATIONS, ModelConfig, resolve
 from ..params import field_docs
 from ..store import ContextStore, open_store
 from .ablate import ABLATIONS, BY_NAME
@@ -75,11 +75,14 @@ def _checked_split(store: str, split: str) -> ContextStore:
 
 
 def model_option(f: Callable) -> Callable:
-    """--model NAME: the named method to train (model/methods.py), the paper's GA3CE by default."""
-    return click.option("--model", "model_name", type=click.Choice(list(METHODS)), default=DEFAULT_METHOD,
+    """--model NAME: the design to train by its fixed name, or an alias of one (model/methods.py),
+    the paper's GA3CE by default."""
+    return click.option("--model", "model_name", type=click.Choice([*METHODS, *ALIASES]), default=DEFAULT_METHOD,
                         show_default=True,
-                        help="The model: " + "; ".join(f"{m.name} = {m.label}: {m.summary}" for m in METHODS.values())
-                        + ". Its config is saved in each checkpoint.")(f)
+                        help="The design: " + "; ".join(f"{m.name} = {m.label}: {m.summary}" for m in METHODS.values())
+                        + "; " + "; ".join(f"{a} = {d} today" for a, d in ALIASES.items())
+                        + ". A design's name never changes meaning; the checkpoint records the design "
+                        "(an alias resolved) and its full config.")(f)
 
 
 def _help(cls: type, name: str) -> str:
@@ -148,7 +151,8 @@ def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, for
     """Train a gaze model on a store with the paper's recipe: the paper's GA3CE unless --model says.
 
     \b
-    Models: ga3ce (the paper's), ours (our design; docs/training.md "The output"); --ablation switches
+    Models: ga3ce (the paper's), pointer-joint, pointer-frozen (our designs; docs/training.md "The
+    output"); ours = the design we think best today, recorded by its fixed name; --ablation switches
     one part of it off, as in the paper's Tables 4 and 5.
     Defaults: the paper's recipe (AdamW, weight decay 0.1, 4 warm-up epochs then cosine per step,
     gradient clip 0.1, batch 32 on GFIE and 64 on GAFA, 20 epochs) at lr 3e-4 (docs/training.md "Learning rate"); seeded
@@ -161,7 +165,8 @@ def train(ctx, store, out, model_name, ablation, rotation, encoding, resume, for
     chosen = {k: v for k, v in (("rotation", rotation), ("encoding", encoding))
               if ctx.get_parameter_source(k) is not ParameterSource.DEFAULT} | _model_sets(model_set)
     overrides = BY_NAME[ablation].overrides
-    if (ablation in METHODS and ablation != model_name
+    design = BY_NAME[ablation].design
+    if (design is not None and design != resolve(model_name)
             and ctx.get_parameter_source("model_name") is not ParameterSource.DEFAULT):
         raise click.UsageError(f"--ablation {ablation} trains the model {ablation}; drop --model {model_name}")
     clash = [k for k in overrides if k in chosen and chosen[k] != overrides[k]]
@@ -250,8 +255,9 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
 def ablate(store, out, rows, seeds, split, model_name, force, model_set, **recipe):
     """Train the paper's ablations of --model and print Tables 4 and 5 beside the paper's numbers.
 
-    The rows switch parts of the model off (the paper's GA3CE by default); the rows ga3ce and ours
-    train the other named model with the same recipe, beside them.
+    The rows switch parts of the model off (the paper's GA3CE by default); the rows ga3ce, ours
+    (by default) and pointer-joint, pointer-frozen (by name) train that design with the same recipe,
+    beside them; each row's output names the fixed design it trained.
 
     Finished rows are reused and unfinished ones resumed, so rerunning the command continues.
     Writes OUT/ablation.json, OUT/ablation.csv and OUT/ablation.png (bar chart).

@@ -6,8 +6,8 @@ GFIE and CAD-120, GAFA's 7-frame windows for GAFA; `frames` chooses), every one 
 style), front/back (true gaze z <= 0 is front; per window from its first frame under GAFA's
 windows), median, and per scene 3D and 2D (GAFA: the paper's Table 3 columns, Office = `lab`,
 Courtyard = both courtyard sessions by frames, beside the paper's row). Methods: the checkpoint's
-model, named by its config ("GA3CE (paper)", "ours"; model/methods.py), the other trained models
-beside it in an `ablate` folder (the other named method, the model without objects), the view
+model, named by its config's fixed design ("GA3CE (paper)", "pointer-frozen (ours)"; model/methods.py),
+the other trained models beside it in an `ablate` folder (the other designs, the model without objects), the view
 prior v, the head direction from the pose keypoints, and snap-to-object (v snapped to the nearest
 object within a cone whose half-angle is chosen on the validation split). The summary says plainly
 whether the model beats each. Python API:
@@ -25,7 +25,7 @@ import torch
 
 from ..errors import ConfigError
 from ..geometry import angular_error_deg
-from ..model import GA3CE, METHODS, ModelConfig, model_label
+from ..model import ALIASES, GA3CE, METHODS, ModelConfig, model_label
 from ..skeleton import head_direction_from_pose
 from ..store import ContextStore, open_store
 from .baselines import choose_snap_cone, snap_to_object
@@ -64,14 +64,21 @@ def predict(model: GA3CE, ds: ContextDataset, batch_size: int = 256, device: str
 
 def sibling_checkpoints(checkpoint: str | Path) -> dict[str, Path]:
     """The other models trained beside a full model in an `ablate` folder (OUT/full/seed<k>/best.pt
-    -> OUT/<row>/seed<k>/best.pt for the named methods' rows and no-objects), by method key
-    ("ga3ce", "ours", "no_objects"); those that are there."""
+    -> OUT/<row>/seed<k>/best.pt for the design rows, the alias rows and no-objects), by row key
+    ("ga3ce", "pointer-joint", "pointer-frozen", "ours", "no_objects"); those that are there."""
     p = Path(checkpoint)
     if p.parent.parent.name != "full":
         return {}
-    rows = {**{m: m for m in METHODS}, "no_objects": "no-objects"}
+    rows = {**{m: m for m in [*METHODS, *ALIASES]}, "no_objects": "no-objects"}
     found = {key: p.parent.parent.parent / row / p.parent.name / p.name for key, row in rows.items()}
     return {key: path for key, path in found.items() if path.is_file()}
+
+
+def _design_of(checkpoint: Path) -> str:
+    """The fixed design of a run folder's checkpoint, from the run's config.json when there."""
+    path = checkpoint.parent / "config.json"
+    saved = json.loads(path.read_text())["model"] if path.is_file() else load_checkpoint(checkpoint)["config"]["model"]
+    return ModelConfig.from_dict(saved).method
 
 
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +115,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     gfm_batch_size frames per pass). no_objects: a checkpoint of the model without objects to score
     beside this one (method "no_objects"), "auto" = the ablate folder's (`sibling_checkpoints`),
     None = none. compare: other checkpoints to score beside it, {key: path}; None = the ablate
-    folder's other named models ("ga3ce", "ours") when there. Returns an EvalResult
+    folder's other designs ("ga3ce", "ours", ...; each design once) when there. Returns an EvalResult
     (train/results.py): store, split, checkpoint, epoch, labels {method: its name in tables},
     n_frames (scored), frames (frameset.ScoredFrames: protocol, expected, scored, unscored {reason:
     [ids]}), head_sources, head_fallback_frames, snap_cone_deg, methods {name: MethodMetrics},
@@ -138,8 +145,14 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     config = ModelConfig.from_dict(ckpt["config"]["model"])
     labels = {"model": model_label(config)}
     siblings = sibling_checkpoints(checkpoint)
-    others: dict[str, str | Path] = dict(compare) if compare is not None else {
-        k: v for k, v in siblings.items() if k in METHODS and k != config.method}
+    others: dict[str, str | Path] = dict(compare) if compare is not None else {}
+    if compare is None:   # each other design once (an alias row may hold the same design as a design row)
+        seen = {config.method}
+        for key, sibling in siblings.items():
+            design = _design_of(sibling) if key != "no_objects" else config.method   # no_objects: below
+            if design not in seen:
+                seen.add(design)
+                others[key] = sibling
     no_objects = siblings.get("no_objects") if no_objects == "auto" else no_objects
     if no_objects is not None:
         others["no_objects"] = no_objects
@@ -174,7 +187,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         store=str(st.path), split=split, checkpoint=str(checkpoint), epoch=int(ckpt["epoch"]) + 1,
         no_objects_checkpoint=None if no_objects is None else str(no_objects),
         compared_checkpoints={k: str(v) for k, v in others.items()}, labels=labels,
-        config=ckpt["config"], dataset=profile.name, n_frames=len(ds), frames=fs,
+        config={**ckpt["config"], "model": config.to_dict()}, dataset=profile.name, n_frames=len(ds), frames=fs,
         head_sources=head_sources, head_fallback_frames=head_fallback, snap_cone_deg=snap_cone_deg,
         head_from_pose_frames=int(pose_ok.sum()), snapped_frames=int(snapped.sum()),
         methods=methods, scene_columns=[c for c in columns if c in methods["model"].per_scene],
