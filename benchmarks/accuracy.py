@@ -21,7 +21,7 @@ from pathlib import Path
 
 import click
 
-from ga3ce_prep.model import METHODS, ModelConfig
+from ga3ce_prep.model import ALIASES, METHODS, ModelConfig
 from ga3ce_prep.train import TrainConfig
 from ga3ce_prep.train.ablate import ablate, default_rows
 from ga3ce_prep.train.cli import _model_sets
@@ -54,8 +54,9 @@ RECIPE = TrainConfig()   # the default recipe
               help='Peak learning rate (the default recipe\'s: docs/training.md "Learning rate").')
 @click.option("--view-noise", type=click.Choice(["auto", "on", "off"]), default="auto", show_default=True,
               help="View-noise augmentation.")
-@click.option("--model", "model_name", type=click.Choice(list(METHODS)), default="ga3ce", show_default=True,
-              help="The base model whose ablations are trained (ga3ce: the paper's).")
+@click.option("--model", "model_name", type=click.Choice([*METHODS, *ALIASES]), default="ga3ce",
+              show_default=True, help="The base design whose ablations are trained (ga3ce: the paper's; "
+              "model/methods.py).")
 @click.option("--model-set", multiple=True, metavar="KEY=VALUE", help="ModelConfig override (repeatable).")
 @click.option("--train-frames", type=int, default=None, help="Train on a subset of this many frames.")
 def main(out, scenes, frames_per_scene, seed, data, store_path, work, synth_config, pipeline, sets, rows, seeds, epochs,

@@ -8,9 +8,10 @@ Steps, each under the CPU lock (cpu_lock.py) with 2 threads and each resumed whe
    one scene each (--shard-size = frames per scene), so every scene starts with one key frame;
 3. the store-level agreement of P_object (share of the exact store's objects with a reuse object
    within 2 cm in the same frame, and the reverse) and the objects stage's seconds per frame;
-4. ours (`--model ours`, the model the study measured) with the default recipe, trained and tested
-   on each store (the same seeds): the test 3D MAE of each and the difference of the means
-   (training on the other store's objects, tested on its own), with the recipe's checkpoint
+4. pointer-joint (`--model pointer-joint`: `ours` when the study measured it) with the default
+   recipe, trained and tested on each store (the same seeds): the test 3D MAE of each and the
+   difference of the means (training on the other store's objects, tested on its own), with the
+   recipe's checkpoint
    (best.pt, the best validation epoch) and with the last epoch's weights (last.pt);
 5. each of those models tested on the other store's test split as well: the difference reuse's
    objects make at test time alone, per model (the same weights, the same frames).
@@ -85,7 +86,7 @@ def seed_run(store: Path, other: Path, run: Path, seed: int, threads: int, keep_
     if cached.exists():
         return json.loads(cached.read_text())
     cfg = TrainConfig(store=str(store), out=str(run), seed=seed, threads=threads, progress=False,
-                      model=ModelConfig.for_method("ours"))
+                      model=ModelConfig.for_method("pointer-joint"))
     if not run_done(run, cfg.epochs):
         train(cfg, resume=(run / "last.pt").exists())
 
