@@ -146,7 +146,8 @@ def _open_checked(path: Path) -> Image.Image:
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
         raise FrameError(f"image {path}: its header declares a size beyond any camera frame ({e}); the file is "
                          "corrupt or hostile: replace it") from None
-    if im.width * im.height > Image.MAX_IMAGE_PIXELS:  # when the warning filter above was reset
+    limit = Image.MAX_IMAGE_PIXELS  # None: lifted (Pillow's own setting), nothing to refuse
+    if limit is not None and im.width * im.height > limit:  # when the warning filter above was reset
         im.close()
         raise FrameError(f"image {path}: its header declares {im.width}x{im.height} pixels, beyond any camera "
                          "frame; the file is corrupt or hostile: replace it")

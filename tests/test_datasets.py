@@ -6,13 +6,14 @@ import pickle
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from ga3ce_prep.datasets import open_dataset
 from ga3ce_prep.datasets.base import gaze_direction
 from ga3ce_prep.datasets.gafa import body_boxes, head_boxes, keypoint_box
 from ga3ce_prep.datasets.safe_pickle import load_pickle
 from ga3ce_prep.errors import DatasetFormatError, FrameError
-from ga3ce_prep.frames import load_depth, load_rgb
+from ga3ce_prep.frames import load_depth, load_rgb, read_depth
 
 W, H = 160, 120
 
@@ -93,6 +94,15 @@ def test_frame_loaders_fail_per_frame_with_the_file(tmp_path):
     os.remove(f.depth_path)
     with pytest.raises(FrameError, match="depth file not found"):
         load_depth(f.depth_path)
+
+
+def test_frames_load_with_pillows_pixel_limit_lifted(tmp_path, monkeypatch):
+    # Image.MAX_IMAGE_PIXELS = None is Pillow's documented way to lift its decompression-bomb limit
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", None)
+    cv2.imwrite(str(tmp_path / "frame.png"), np.full((H, W, 3), 7, np.uint8))
+    assert load_rgb(tmp_path / "frame.png").shape == (H, W, 3)
+    cv2.imwrite(str(tmp_path / "depth.png"), np.full((H, W), 2000, np.uint16))
+    assert read_depth(tmp_path / "depth.png").shape == (H, W)
 
 
 def test_cad120_normalised_boxes_and_mm_depth(tmp_path):
