@@ -2,8 +2,8 @@
 
 view_noise (the paper's GFIE recipe): v_noise = normalise(v + eps), eps ~ U[-a, a]^3 (a = 0.5
 shifts a unit v by about 22 degrees on average).
-object_dropout and object_jitter (ours, off by default; docs/training.md "What the objects add"):
-regularisers of the object pathway against memorising rooms from their object layouts.
+object_dropout and object_jitter (ours, off by default): regularisers of the object pathway against
+memorising rooms from their object layouts, tried in docs/studies/2026-11-29-what-the-objects-add.md.
 """
 from __future__ import annotations
 

@@ -65,7 +65,7 @@ class TrainConfig:
     view_noise_amplitude: float = 0.5  # amplitude a of eps ~ U[-a, a]^3 (0.5: about 22 degrees on average)
     object_dropout: float = (
         # probability of dropping each object token of a training frame (ours,
-        # 0 = the paper's recipe): docs/training.md "What the objects add"
+        # 0 = the paper's recipe): docs/studies/2026-11-29-what-the-objects-add.md
         0.0)
     object_frame_dropout: float = (
         # probability of hiding all objects of a training frame (ours, 0
