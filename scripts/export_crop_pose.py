@@ -1,15 +1,17 @@
 #!/usr/bin/env python
 """Write your MeTRAbs (or NLF) crop model as the files `pose: torchscript` and `pose: onnx` read.
 
-    python scripts/export_crop_pose.py metrabs --model-dir metrabs_eff2l_384px_800k_28ds_pytorch --out models/metrabs_l
-    # -> models/metrabs_l.pt, models/metrabs_l.onnx (where it exports), models/metrabs_l.joints.txt
+    python scripts/export_crop_pose.py metrabs --model-dir metrabs_eff2l_384px_800k_28ds_pytorch --out models
+    # -> models/metrabs.pt, models/metrabs.onnx (where it exports), models/metrabs.joints.txt
 
 The written model takes image [1, S, S, 3] float32 RGB in [0, 1] (gamma as the runner makes it) and
 the crop camera's intrinsics [1, 3, 3], and returns the smpl+head_30 joints [1, 30, 3] in
-millimetres in the crop camera; the joint names, in that order, go to `<out>.joints.txt`
-(docs/models/pose.md, "The contract"). This script imports the authors' code from
-your install (MeTRAbs's `metrabs_pytorch` with `posepile`, `simplepyutils` and hydra; or NLF's
-TorchScript file and torchvision): none of it is part of ga3ce-prep.
+millimetres in the crop camera; the joint names, in that order, go to `<name>.joints.txt` beside
+it (docs/models/pose.md, "The contract"). The names are the ones the paper's pipelines read from the
+model folder (`{models}/metrabs.pt`, `metrabs.onnx`: docs/models/README.md); NLF's are `nlf.*`.
+This script imports the authors' code from your install (MeTRAbs's `metrabs_pytorch` with
+`posepile`, `simplepyutils` and hydra; or NLF's TorchScript file and torchvision): none of it is
+part of ga3ce-prep.
 
 Not run here: the weights cannot be downloaded on the machines this project is built on. What the
 tests check is the shared part (`ga3ce_prep.estimators.pose.crop_export.save_crop_model`: tracing,
@@ -127,9 +129,10 @@ def main(argv: list[str] | None = None) -> int:
                    help=".npy (J, 3): NLF's canonical points of the joints")
     n.add_argument("--joint-names", type=Path, required=True, help="text file: the J joint names, one per line")
     n.add_argument("--resolution", type=int, help="crop side S when the crop model does not say it")
-    for p in (m, n):
+    for p, name in ((m, "metrabs"), (n, "nlf")):
         p.add_argument("--out", type=Path, required=True,
-                       help="output stem: writes STEM.pt, STEM.onnx, STEM.joints.txt")
+                       help="the model folder (created): writes NAME.pt, NAME.onnx, NAME.joints.txt into it")
+        p.add_argument("--name", default=name, help=f"the files' stem (default: {name}, as the pipelines read it)")
         p.add_argument("--no-onnx", action="store_true", help="write the TorchScript file only")
     args = ap.parse_args(argv)
 
@@ -141,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         module, side, names = load_nlf(args.model, args.canonical_points, args.joint_names, args.resolution)
     select_joints(names, "the model's joint names")  # all 30 smpl+head_30 names present, before the work
-    out = save_crop_model(module, side, names, args.out, onnx=not args.no_onnx)
+    args.out.mkdir(parents=True, exist_ok=True)
+    out = save_crop_model(module, side, names, args.out / args.name, onnx=not args.no_onnx)
     print(f"wrote {out.torchscript} (S = {side}) and {out.joints} ({len(names)} joints)")
     print(f"wrote {out.onnx}" if out.onnx else f"no ONNX file ({out.onnx_error}); use pose: torchscript")
     print("largest difference from the module on a random crop, mm: "

@@ -1,7 +1,8 @@
 """Export GAFA's GazeNet (kyotovision-public/dynamic-3d-gaze-from-afar) to the ONNX file that the
 pipeline's `view: gafa` backend reads (docs/models/view.md, "GAFA's view network").
 
-    python scripts/export_gafa_view.py --gafa ~/dynamic-3d-gaze-from-afar --out models/gafa_view.onnx
+    python scripts/export_gafa_view.py --gafa dynamic-3d-gaze-from-afar --out models
+    # -> models/gafa_view.onnx, the name the gafa pipeline reads (docs/models/README.md)
 
 Run it in the environment GAFA's code runs in (its conda.yaml: torch, efficientnet_pytorch,
 pytorch_lightning); it imports `models.gazenet` from the --gafa folder and copies none of it. The
@@ -26,6 +27,7 @@ import torch
 
 WINDOW, CROP_H, CROP_W = 7, 256, 192
 INPUTS = ("image", "head_mask", "body_dv")
+NAME = "gafa_view.onnx"  # as the gafa pipeline reads it: {models}/gafa_view.onnx
 
 
 class GazeOnly(torch.nn.Module):
@@ -93,14 +95,16 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gafa", type=Path, required=True, help="your clone of dynamic-3d-gaze-from-afar")
     ap.add_argument("--checkpoint", type=Path, help="default: GAFA/models/weights/gazenet_GAFA.pth")
-    ap.add_argument("--out", type=Path, default=Path("models/gafa_view.onnx"))
+    ap.add_argument("--out", type=Path, default=Path("models"),
+                    help=f"the model folder (created): writes {NAME} into it")
     ap.add_argument("--opset", type=int, default=13)
     ap.add_argument("--unsafe-load", action="store_true", help="torch.load the checkpoint without weights_only")
     a = ap.parse_args(argv)
     ckpt = a.checkpoint or a.gafa / "models" / "weights" / "gazenet_GAFA.pth"
-    diff = export(load_gazenet(a.gafa.resolve(), ckpt, a.unsafe_load), a.out, a.opset)
+    out = a.out / NAME
+    diff = export(load_gazenet(a.gafa.resolve(), ckpt, a.unsafe_load), out, a.opset)
     check = "onnxruntime not installed: not checked" if diff is None else f"max |ONNX - PyTorch| = {diff:.2e}"
-    print(f"wrote {a.out} ({check})")
+    print(f"wrote {out} ({check})")
 
 
 if __name__ == "__main__":

@@ -9,10 +9,12 @@ ga3ce-prep:
   depth-anything-v2-metric  DepthAnything/Depth-Anything-V2's `metric_depth` folder (--repo)
 
     python scripts/export_monodepth.py zoedepth --variant N --checkpoint ZoeD_M12_N.pt \\
-        --image-size 1920x1080 --out models/zoedepth.onnx
+        --image-size 1920x1080 --out models
+    # -> models/zoedepth.onnx, the name gfie-monodepth and gafa read (docs/models/README.md)
     python scripts/export_monodepth.py depth-anything-v2-metric --repo Depth-Anything-V2/metric_depth \\
         --encoder vitl --max-depth 20 --checkpoint depth_anything_v2_metric_hypersim_vitl.pth \\
-        --image-size 1920x1080 --out models/depth_anything_v2_metric_indoor.onnx
+        --image-size 1920x1080 --out models
+    # -> models/depth_anything_v2_metric_indoor.onnx (no bundled pipeline reads it: --set its path)
 
 The file's input is fixed at the size `depth/onnx` computes for images of --image-size under the
 network's preset (ZoeDepth 1920x1080 -> 384x672, Depth-Anything 1920x1080 -> 518x924), so the file
@@ -139,7 +141,9 @@ def main(argv: list[str] | None = None) -> None:
     for p in (zoe, da):
         p.add_argument("--checkpoint", type=Path, required=True)
         p.add_argument("--image-size", required=True, help="WxH of the dataset's images, e.g. 1920x1080")
-        p.add_argument("--out", type=Path, required=True)
+        p.add_argument("--out", type=Path, required=True, help="the model folder (created): writes NAME.onnx into it")
+        p.add_argument("--name", help="the file's stem; default: zoedepth, or the Depth-Anything preset's name "
+                                      "with underscores")
         p.add_argument("--opset", type=int, default=17)
     a = ap.parse_args(argv)
     image_size = tuple(int(v) for v in a.image_size.lower().split("x"))
@@ -153,9 +157,10 @@ def main(argv: list[str] | None = None) -> None:
         preset = "depth-anything-v2-metric-indoor" if a.max_depth <= 20 else "depth-anything-v2-metric-outdoor"
         module, opt = load_depth_anything_v2_metric(a.repo, a.encoder, a.max_depth, a.checkpoint), PRESETS[preset]
     size = network_size(*image_size, opt)
-    export(module, size, a.out, a.opset)
-    print(f"wrote {a.out} (input 1x3x{size[0]}x{size[1]}); check: {verify(module, a.out, opt, image_size)}")
-    print(f"pipeline: stages.depth: {{backend: onnx, params: {{model: {a.out}, preset: {preset}{extra}}}}}")
+    out = a.out / f"{a.name or preset.replace('-', '_')}.onnx"
+    export(module, size, out, a.opset)
+    print(f"wrote {out} (input 1x3x{size[0]}x{size[1]}); check: {verify(module, out, opt, image_size)}")
+    print(f"pipeline: stages.depth: {{backend: onnx, params: {{model: {out}, preset: {preset}{extra}}}}}")
 
 
 if __name__ == "__main__":

@@ -242,9 +242,9 @@ def test_export_script_on_a_stand_in_gafa_install(tmp_path):
     torch.manual_seed(0)
     net = code["GazeNet"](7)
     torch.save({"state_dict": net.state_dict(), "epoch": 3}, gafa / "models" / "weights" / "gazenet_GAFA.pth")
-    out = tmp_path / "gafa_view.onnx"
+    out = tmp_path / "models" / "gafa_view.onnx"                         # the name the gafa pipeline reads
     p = subprocess.run([sys.executable, str(REPO / "scripts" / "export_gafa_view.py"), "--gafa", str(gafa),
-                        "--out", str(out)], capture_output=True, text=True, timeout=300)
+                        "--out", str(out.parent)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "max |ONNX - PyTorch|" in p.stdout
     est = GafaViewEstimator(out)
