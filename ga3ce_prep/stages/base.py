@@ -146,6 +146,12 @@ class Backend:
         SHA-256 and `provenance()` records it. Default: none."""
         return ()
 
+    def side_files(self) -> dict[str, Path]:
+        """Model files the backend reads that are not file parameters (a list beside its model), by
+        what they are; the run checks that they exist before any work, and `ga3ce-prep models check`
+        lists them. Default: none."""
+        return {}
+
     def check(self) -> None:
         """Validate once before any work (files readable, keys present); raise ConfigError or
         ModelFileError naming the pipeline key and the fix. Default: the registry models are

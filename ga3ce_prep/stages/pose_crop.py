@@ -36,6 +36,10 @@ class CropPose(ProcessEstimator, PoseBackend):
     def joints_path(self) -> Path:
         return joints_file(self.p.model, self.p.joints)
 
+    def side_files(self) -> dict[str, Path]:
+        """The joint list beside the model when `joints` does not name one."""
+        return {} if self.p.joints is not None else {"joint names": self.joints_path()}
+
     def build_estimator(self):
         from ..estimators.pose.crop import CropPoseEstimator, read_joint_names
 

@@ -7,6 +7,9 @@ Each model's output is a known function of its input, so a test can check what t
 - GFIE's network (head branch and GFM): random weights saved as GFIE saves its checkpoint;
 - metric monocular depth (`linear_depth_model`): depth = a * channel 0 + b, any input size;
 - GAFA's view network: `scripted.centroid_gazenet`.
+
+And stand-ins for the authors' networks that scripts/export_*.py import (`Constant`, `StandInDepth`,
+`StandInGazeNet`), with which tests/test_model_folder.py follows the recipes of docs/models/README.md.
 """
 from __future__ import annotations
 
@@ -55,6 +58,38 @@ class Constant(torch.nn.Module):
     def forward(self, image: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
         zero = 0.0 * (image.float().mean() + intrinsics.sum())
         return self.joints[None].expand(image.shape[0], -1, -1) + zero
+
+
+class StandInGazeNet(torch.nn.Module):
+    """GAFA's GazeNet's call convention, forward(image (B, 7, 3, H, W), head_mask (B, 7, 1, H, W),
+    body_dv (B, 7, 2)) -> ({"direction": (B, 7, 3) unit}, {}, {}), with a few random weights: what
+    scripts/export_gafa_view.py wraps and exports, for the tests that follow its recipe."""
+
+    def __init__(self, seed: int = 0):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.fc = torch.nn.Linear(2, 3)
+
+    def forward(self, image: torch.Tensor, head_mask: torch.Tensor, body_dv: torch.Tensor):
+        d = self.fc(body_dv) + image.mean((2, 3, 4))[..., None] + head_mask.mean((2, 3, 4))[..., None] + 0.5
+        return {"direction": d / d.norm(dim=-1, keepdim=True)}, {}, {}
+
+
+class StandInDepth(torch.nn.Module):
+    """A metric depth network's call convention (image (1, 3, H, W) -> (1, 1, H, W) metres):
+    depth = 1.5 m + the red channel, for the tests that follow scripts/export_monodepth.py's recipe."""
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return 1.5 + image[:, :1]
+
+
+def constant_joints() -> np.ndarray:
+    """The joints of the crop models written here: every joint at CROP_DEPTH_MM on the crop axis plus
+    a small per-joint offset, millimetres (one per skeleton joint)."""
+    from ..skeleton import JOINT_NAMES
+
+    offsets = np.linspace(-300.0, 300.0, len(JOINT_NAMES))
+    return np.stack([0.3 * offsets, offsets, CROP_DEPTH_MM + 0.1 * offsets], 1)
 
 
 def random_gfie_net(seed: int = 0):
@@ -109,9 +144,7 @@ def write_paper_models(folder: Path, depth_m: float = 2.0, crop_size: int = 64) 
     labels[:240, :320], labels[:240, 320:], labels[240:, :320], labels[240:, 320:] = 1, 2, 3, 4
     onnx.save(scripted.pooling_encoder(), str(paths["mobile_sam_encoder"]))
     onnx.save(scripted.scripted_decoder(labels), str(paths["mobile_sam_decoder"]))
-    offsets = np.linspace(-300.0, 300.0, len(JOINT_NAMES))
-    joints = np.stack([0.3 * offsets, offsets, CROP_DEPTH_MM + 0.1 * offsets], 1)
-    save_crop_model(Constant(joints), crop_size, JOINT_NAMES, folder / "metrabs")
+    save_crop_model(Constant(constant_joints()), crop_size, JOINT_NAMES, folder / "metrabs")
     torch.save(gfie_checkpoint(gfie_state(random_gfie_net())), paths["gfiemodel"])
     linear_depth_model(paths["zoedepth"], {"depth": (0.0, depth_m)})
     onnx.save(scripted.centroid_gazenet(), str(paths["gafa_view"]))
