@@ -72,6 +72,11 @@ def test_the_wheel_runs_a_bundled_pipeline_outside_the_checkout(tmp_path):
     listed = re.sub(r"-\s+", "-", _sh(cli, "run", "--help", cwd=empty, env=env))  # wrapped at hyphens
     assert all(n in listed for n in pipeline_names()), listed
 
+    every = _sh(python, "-c", "from ga3ce_prep.bundled import pipeline_names\n"
+                "from ga3ce_prep.pipeline.config import load_pipeline\n"
+                "for n in pipeline_names(): print(load_pipeline(n, '.', check_files=False).name)", cwd=empty, env=env)
+    assert every.split() == pipeline_names()                               # each validates against the schema
+    assert "--transfer-rooms" in _sh(cli, "demo", "--help", cwd=empty, env=env)
     _sh(cli, "synth", *WORLD, "--out", "world", "--quiet", cwd=empty, env=env)
     _sh(cli, "run", "--pipeline", "synthetic", "--data", "world", "--out", "s.zarr", "-q",
         "--set", "stages.objects.params.stride=1", cwd=empty, env=env)
