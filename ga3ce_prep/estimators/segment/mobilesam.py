@@ -6,9 +6,9 @@ It runs segment-anything's automatic mask generator (amg.py) on the runners of o
 the encoder and decoder ONNX files through ONNX Runtime (mobilesam_runners.py: the preprocessing, the
 encoder, the fast and official decoders, both a `MaskDecoder`), or, `MobileSamSegmenter.from_checkpoint`
 (`runtime: torch`, mobilesam_torch.py), MobileSAM's own torch modules read from the official
-checkpoint `mobile_sam.pt`, on the CPU or a CUDA device. Each crop's steps run through a `CropPlan`:
-the exact generator's `EXACT` (every prompt), or reuse.SequenceReuse (reuse across the frames of a
-static camera).
+checkpoint `mobile_sam.pt`, on the CPU or a CUDA device. Each crop's steps run through a `CropPlan`
+(crop_plan.py): the exact generator's `EXACT` (every prompt), or reuse.SequenceReuse (reuse across
+the frames of a static camera).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...files import file_sha256
 from . import amg
+from .crop_plan import EXACT, CropPlan
 from .mobilesam_runners import (
     ImageEncoder,
     MaskDecoder,
@@ -84,49 +85,6 @@ class _Counts:
     def __add__(self, other: _Counts) -> _Counts:
         return _Counts(self.candidates + other.candidates, self.mask_prompts + other.mask_prompts,
                        self.prompts + other.prompts)
-
-
-class CropPlan(Protocol):
-    """A layer around the generator's steps on one crop (`MobileSamSegmenter._process_crop`), called
-    in this order: `plan` the grid prompts to decode, decode them with the filters' thresholds
-    lowered by `margin`, `merge` their candidates with the layer's own, NMS, `settle` the winners.
-    The exact generator's `EXACT` decodes every prompt and adds nothing; reuse.SequenceReuse reuses
-    a key frame's candidates (full-image crop only)."""
-
-    step: str | None  # amg.StepTimer step of plan and merge (None: not timed)
-
-    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
-        """embedding (1, 256, 64, 64), the grid's prompts coords (n, 2) in the 1024 frame -> (n,)
-        bool prompts to decode, None for all."""
-
-    @property
-    def margin(self) -> float:
-        """Lower the IoU and stability thresholds by this when decoding the planned prompts."""
-
-    def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
-        """The planned prompts' candidates, in prompt order -> the crop's candidates before NMS."""
-
-    def settle(self, keep: np.ndarray) -> None:
-        """keep: the rows of `merge`'s result that won the crop's NMS, in NMS order."""
-
-
-class _Exact:
-    """The exact generator's CropPlan: every prompt, the filters' own thresholds, nothing merged."""
-
-    step = None
-    margin = 0.0
-
-    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> None:
-        return None
-
-    def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
-        return decoded
-
-    def settle(self, keep: np.ndarray) -> None:
-        pass
-
-
-EXACT: CropPlan = _Exact()
 
 
 def _resize_nearest(mask: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:

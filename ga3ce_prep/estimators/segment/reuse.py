@@ -174,7 +174,7 @@ def dilate(cells: np.ndarray, r: int) -> np.ndarray:
 class SequenceReuse:
     """One camera sequence's key frame and the rule of what to decode again (module docstring).
     Use per frame: `start(cues)`, then `MobileSamSegmenter.segment(rgb, reuse=...)`: it is the
-    generator's crop plan (mobilesam.CropPlan: `plan`, `margin`, `merge`, `settle`); `last` tells
+    generator's crop plan (crop_plan.CropPlan: `plan`, `margin`, `merge`, `settle`); `last` tells
     what was done. Not thread-safe: one sequence, one thread."""
 
     step = "reuse"   # the generator's timer step of plan and merge
