@@ -115,8 +115,8 @@ class GazeTransformer(nn.Module):
 
 class ObjectPointer(nn.Module):
     """The pointer output (designs pointer-joint and pointer-frozen; ModelConfig.output "pointer",
-    docs/training.md "The output"): g is a convex combination of the first pass's estimate g0 and the unit directions u_i of
-    the objects from the head,
+    docs/training.md "The output"): g is a convex combination of the first pass's estimate g0 and
+    the unit directions u_i of the objects from the head,
 
         p = softmax(q(E_subject) . k([null token, F_object]) / sqrt(d) + kappa (cos(g0, u_i) - 1)),
         g = normalise(p_null g0 + sum_i p_i u_i).
