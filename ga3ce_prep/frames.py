@@ -104,10 +104,10 @@ def frame_windows(frames: list[FrameRef], size: int) -> list[Window]:
     members: dict[str | int, list[int]] = {}
     for i, f in enumerate(frames):
         members.setdefault(f.sequence or i, []).append(i)
-    out: list[Window | None] = [None] * len(frames)
+    out: dict[int, Window] = {}
     offsets = np.arange(-h, h + 1)
-    for seq, pos in members.items():
-        pos = np.asarray(pos)
+    for seq, members_pos in members.items():
+        pos = np.asarray(members_pos)
         number = np.array([frames[i].index for i in pos], np.int64)
         order = np.argsort(number, kind="stable")
         pos, number = pos[order], number[order]
@@ -119,9 +119,9 @@ def frame_windows(frames: list[FrameRef], size: int) -> list[Window]:
         found = number[at] == want
         prev = (np.searchsorted(number, number - h) - 1) % len(number)    # cyclic: -1 -> the last
         for r, i in enumerate(pos):
-            out[i] = Window(tuple(frames[pos[a]] if ok else None for a, ok in zip(at[r], found[r])),
-                            frames[pos[prev[r]]])
-    return out  # type: ignore[return-value]
+            out[int(i)] = Window(tuple(frames[pos[a]] if ok else None for a, ok in zip(at[r], found[r])),
+                                 frames[pos[prev[r]]])
+    return [out[i] for i in range(len(frames))]  # every frame is in one sequence
 
 
 @dataclass
@@ -247,6 +247,7 @@ def read_depth(path: str | Path, check: bool = True) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FrameError(f"depth file not found: {path}")
+    d: np.ndarray | None
     if path.suffix == ".npy":
         try:
             d = load_npy(path)

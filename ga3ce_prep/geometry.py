@@ -34,7 +34,7 @@ def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def back_project(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
+def back_project(u: np.ndarray | float, v: np.ndarray | float, z: np.ndarray | float, K: np.ndarray) -> np.ndarray:
     """Pixels (u, v) at depth z (metres) to camera-frame points (..., 3)."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     z = np.asarray(z)
@@ -123,7 +123,7 @@ def _grouped_valid_pixels(masks: np.ndarray, ok: np.ndarray, min_points: int):
     okf = ok.ravel()
     if masks.ndim == 3:  # (M, H, W) bool stack, masks may overlap
         M = masks.shape[0]
-        flat = masks.reshape(M, okf.size)  # (not -1: no masks is a (0, H*W) stack)
+        flat: np.ndarray = masks.reshape(M, okf.size)  # (not -1: no masks is a (0, H*W) stack)
         area = np.count_nonzero(flat, axis=1)
         mask_id, pix = np.nonzero(flat)  # row-major: grouped by mask already
         sel = okf[pix]

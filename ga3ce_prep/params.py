@@ -63,9 +63,12 @@ def field_docs(cls: type) -> dict[str, str]:
             continue
         comments = {t.start[0]: t.string.lstrip("#").strip()
                     for t in tokenize.generate_tokens(io.StringIO(src).readline) if t.type == tokenize.COMMENT}
-        for node in ast.parse(src).body[0].body:
+        class_def = ast.parse(src).body[0]
+        assert isinstance(class_def, ast.ClassDef)  # the source of a class
+        for node in class_def.body:
             if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-                text = " ".join(comments[i] for i in range(node.lineno, node.end_lineno + 1) if i in comments)
+                end = node.end_lineno or node.lineno  # always set by ast.parse
+                text = " ".join(comments[i] for i in range(node.lineno, end + 1) if i in comments)
                 if text:
                     docs[node.target.id] = text
     return docs
@@ -110,7 +113,10 @@ def _has_default(f: dataclasses.Field) -> bool:
 
 
 def _default(f: dataclasses.Field) -> Any:
-    return f.default if f.default is not dataclasses.MISSING else f.default_factory()
+    """The default of a field that has one (_has_default): its default, or its factory's value."""
+    if f.default_factory is dataclasses.MISSING:
+        return f.default
+    return f.default_factory()
 
 
 def json_schema(cls: type) -> dict[str, Any]:

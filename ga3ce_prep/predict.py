@@ -22,7 +22,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from .stages import DROPS_FRAME, call_backend, dependency_order
 from .stages.base import FrameObjects, Sourced
 
 if TYPE_CHECKING:
+    from .model.ga3ce import GA3CE
     from .pipeline.config import PipelineConfig
 
 DEFAULT_PIPELINE = "folder-real"
@@ -143,7 +144,8 @@ class Predictor:
                  overrides: list[str] | None = None, fast: bool = False):
         self.pipeline, self.overrides, self.fast = pipeline or DEFAULT_PIPELINE, list(overrides or []), fast
         self._backends: dict[bool, tuple[Any, dict[str, Any]]] = {}  # has depth file -> (conf, backends)
-        self.model, self.model_name = None, ""
+        self.model: GA3CE | None = None
+        self.model_name = ""
         if checkpoint is not None:
             from .model import ModelConfig, model_label
             from .train.checkpoint import build_model, check_checkpoint, load_checkpoint
@@ -196,7 +198,9 @@ class Predictor:
         if body_box is not None:
             frame.body_box = np.asarray(body_box, np.float32)
         conf, backends = self._stages(depth is not None)
-        out, sources, degraded = {}, {}, {}
+        out: dict[str, Any] = {}
+        sources: dict[str, str] = {}
+        degraded: dict[str, str] = {}
         for stage in dependency_order(conf.upstream):
             try:
                 r = call_backend(backends[stage], frame, out)
@@ -221,6 +225,7 @@ class Predictor:
         """The model's g for one frame; objects largest mask first, as the trainer feeds them."""
         import torch
 
+        assert self.model is not None  # called with a checkpoint only
         order = np.argsort(-p.area.astype(np.float64), kind="stable")
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]  # noqa: E731
         with torch.no_grad():
@@ -244,6 +249,12 @@ def one_frame_store(p: Prediction):
 
 # --- command line ---------------------------------------------------------------------------------
 import click  # noqa: E402
+
+
+@overload
+def _box(value: str) -> tuple[float, ...]: ...
+@overload
+def _box(value: None) -> None: ...
 
 
 def _box(value: str | None) -> tuple[float, ...] | None:

@@ -137,7 +137,7 @@ class StoreWriter:
             self.scene_names.append(scene)
             return len(self.scene_names) - 1
 
-    def _push(self, key: str, value: np.ndarray, force: bool = False) -> None:
+    def _push(self, key: str, value: np.ndarray | None, force: bool = False) -> None:
         buf = self.buffers[key]
         if value is not None and len(value):
             buf.append(value)
@@ -357,6 +357,8 @@ def _verify_once(path: str) -> None:
 def rebuild_hint(path: str, attrs: dict[str, Any] | None = None) -> str:
     """How to rebuild the store at `path`: REBUILD, with the command as its root attributes record it
     (pipeline file, or its bundled name; dataset root, --limit) when they are readable."""
+    if attrs is None:
+        return REBUILD
     try:
         pipeline, root = attrs["pipeline"]["file"], attrs["dataset"]["root"]
         limit = (attrs.get("run") or {}).get("limit")
@@ -477,23 +479,31 @@ def open_store(path: str | Path, verify: bool = True) -> ContextStore:
         for gname in GROUPS:
             key = gname
             g = root[gname]
-            for name in g.array_keys():
+            if not isinstance(g, zarr.Group):
+                raise TypeError(f"{gname} is an array, not a group")
+            for name, array in g.arrays():
                 key = f"{gname}/{name}"
-                groups[gname][name] = np.asarray(g[name][...])
+                groups[gname][name] = np.asarray(array[...])
         key = "frames/split"
-        split_names = list(root["frames/split"].attrs.get("names", SPLITS))
+        split_names = _names(root["frames/split"], SPLITS)
         key = "frames/scene"
-        scene_names = list(root["frames/scene"].attrs.get("names", []))
+        scene_names = _names(root["frames/scene"], ())
         source_names = {}
         for st in SOURCE_STAGES:
             if f"{st}_source" in groups["frames"]:
                 key = f"frames/{st}_source"
-                source_names[st] = list(root[key].attrs.get("names", []))
+                source_names[st] = _names(root[key], ())
     except Exception as e:  # whatever a damaged chunk or zarr.json makes zarr raise
         raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
                         failures=groups["failures"], split_names=split_names, scene_names=scene_names,
                         source_names=source_names, verified=verified)
+
+
+def _names(node: zarr.Array | zarr.Group, default: tuple[str, ...]) -> list[str]:
+    """The `names` attribute of a coded array (the names of its codes), default when it has none."""
+    names: Any = node.attrs.get("names", default)  # JSON: a list of strings as the writer put it
+    return list(names)
 
 
 def _unreadable(path: str, key: str, error: Exception) -> StoreError:

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import FrameError
 
@@ -38,7 +39,7 @@ def units_name(scale: float) -> str:
     return next((u for u, m in METRES_PER_UNIT.items() if np.isclose(scale, m)), f"x{scale:g} m")
 
 
-def to_metres(x: np.ndarray, units: str) -> np.ndarray:
+def to_metres(x: npt.ArrayLike, units: str) -> np.ndarray:
     """A length array in `units` (m, cm, mm, inverse_m) as float32 metres; inverse values <= 0 give 0."""
     x = np.asarray(x, np.float32)
     if units == "inverse_m":
@@ -47,7 +48,8 @@ def to_metres(x: np.ndarray, units: str) -> np.ndarray:
     return x if units == "m" else x * np.float32(METRES_PER_UNIT[units])
 
 
-def fitting_units(raw: float, plausible: tuple[float, ...], candidates: tuple[str, ...] = LENGTH_UNITS) -> list[str]:
+def fitting_units(raw: float | np.floating, plausible: tuple[float, ...],
+                  candidates: tuple[str, ...] = LENGTH_UNITS) -> list[str]:
     """The units among `candidates` in which the value `raw` is within `plausible` [min, max] metres."""
     lo, hi = plausible
     return [u for u in candidates if lo <= float(to_metres(np.float32(raw), u)) <= hi]

@@ -150,7 +150,11 @@ def context_points(store: ContextStore, i: int, ref: FrameRef | None, arrow_m: f
     pts, cols = [], []
     if ref is not None and (depth is not None or ref.depth_path is not None):
         try:
-            d = depth if depth is not None else load_depth(ref.depth_path, ref.depth_scale)
+            if depth is not None:
+                d = depth
+            else:
+                assert ref.depth_path is not None  # the condition above
+                d = load_depth(ref.depth_path, ref.depth_scale)
             P = depth_to_points(d, K).reshape(-1, 3)
             ok = d.reshape(-1) > 0
             try:
@@ -206,7 +210,7 @@ def write_context(store: ContextStore, i: int, ref: FrameRef | None, out: str | 
         P, C = context_points(store, i, ref, depth=depth)
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P.astype(np.float64)))
         pc.colors = o3d.utility.Vector3dVector(np.clip(C, 0, 1))
-        if not o3d.io.write_point_cloud(str(out), pc):
+        if not o3d.io.write_point_cloud(out, pc):
             raise StoreError(f"cannot write {out}")
     else:
         raise StoreError(f"--out {out}: use a .png (drawing) or .ply (3D point set) file name")
