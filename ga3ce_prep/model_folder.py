@@ -3,11 +3,11 @@ as a contract: every file the paper's pipelines read there, the command that wri
 name, about how large it is and how it is checked (`MODEL_FILES`, the table of
 docs/models/README.md), and `ga3ce-prep models check`, which lists what a folder holds for a
 pipeline: verified (the backend's own check passed), present (not checked: a file it is checked
-with is missing), failing its check, or missing, with the command that makes each missing file.
-`run` refuses a pipeline whose model files are missing with the same lines (`missing_lines`)."""
+with is missing), failing its check, or missing, with the command that makes each missing file
+(ga3ce_prep/models_cli.py loads the pipelines for it). `run` refuses a pipeline whose model files
+are missing with the same lines (`missing_lines`)."""
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -101,33 +101,9 @@ def how_to_make(name: str, hint: str = "", folder: Path | None = None) -> str:
     return f"{f.what}: `{command_for(f, folder)}` ({f.doc})"
 
 
-def _anchor(section: str) -> str:
+def anchor(section: str) -> str:
     """GitHub's anchor of a section title."""
     return re.sub(r"[^\w\- ]", "", section.lower()).replace(" ", "-")
-
-
-def readers() -> dict[str, list[str]]:
-    """File name -> the paper pipelines that read it from the model folder."""
-    from .pipeline.config import load_pipeline
-
-    out: dict[str, list[str]] = {}
-    for name in PAPER_PIPELINES:
-        conf = load_pipeline(name, Path.cwd(), check_files=False, models=Path("models"))
-        for sc in conf.stages.values():
-            for f in stage_files(sc, Path.cwd()):
-                out.setdefault(f.path.name, []).append(name)
-    return out
-
-
-def table_markdown() -> str:
-    """The table of docs/models/README.md: every file the paper pipelines read from the model folder,
-    the pipelines that read it, the command that makes it (its recipe), its size and its check."""
-    read = readers()
-    rows = ["| file | read by | made by (the recipe) | size | checked by |", "| --- | --- | --- | --- | --- |"]
-    for f in MODEL_FILES:
-        rows.append(f"| `{f.name}`: {f.what} | {', '.join(read.get(f.name, [])) or 'none'} | `{f.make}` "
-                    f"([{f.page}]({f.page}#{_anchor(f.section)})) | {f.size} | {f.check} |")
-    return "\n".join(rows) + "\n"
 
 
 @dataclass
@@ -190,27 +166,6 @@ def check_stage(sc: StageConfig, data_root: Path) -> list[FileStatus]:
     return files
 
 
-def check_folder(models: Path, pipelines: list[str]) -> list[FileStatus]:
-    """The model files of `pipelines` (bundled names or files) resolved against the folder `models`,
-    each checked once (a stage two pipelines share is checked once), in the pipelines' order."""
-    from .pipeline.config import load_pipeline
-
-    data_root = Path.cwd()
-    seen: dict[str, list[FileStatus]] = {}
-    by_path: dict[Path, FileStatus] = {}
-    for name in pipelines:
-        conf = load_pipeline(name, data_root, check_files=False, models=models)
-        for sc in conf.stages.values():
-            key = json.dumps([sc.stage, sc.backend, {k: str(v) for k, v in sc.params.items()}], sort_keys=True)
-            if key not in seen:
-                seen[key] = check_stage(sc, data_root)
-            for f in seen[key]:
-                f = by_path.setdefault(f.path, f)
-                if conf.name not in f.pipelines:
-                    f.pipelines.append(conf.name)
-    return list(by_path.values())
-
-
 def _size(path: Path) -> str:
     n = path.stat().st_size if path.is_file() else 0
     return "" if not n else f"{n / 1e6:.1f} MB" if n >= 1e5 else f"{n / 1e3:.1f} kB" if n >= 1e3 else f"{n} B"
@@ -229,30 +184,3 @@ def report(models: Path, files: list[FileStatus]) -> tuple[str, bool]:
     counts = {s: sum(f.status == s for f in files) for s in ("verified", "present", "failing", "missing")}
     lines.append(", ".join(f"{n} {s}" for s, n in counts.items()))
     return "\n".join(lines), counts["verified"] == len(files)
-
-
-# --- command line ---------------------------------------------------------------------------------
-import click  # noqa: E402
-
-
-@click.command("check")
-@click.option("--models", "-m", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="The model folder, `{models}` in pipeline files. Default: $GA3CE_MODEL_DIR, else ./models.")
-@click.option("--pipeline", "-p", "pipelines", multiple=True,
-              help="A bundled pipeline's name or a pipeline file (repeatable). Default: the paper's: "
-                   + ", ".join(PAPER_PIPELINES) + ".")
-def check_cmd(models: Path | None, pipelines: tuple[str, ...]) -> None:
-    """List the model files the pipelines read from the folder: verified (the backend's own check
-    passed: the file loads and has its interface), present (not checked while a file it is checked
-    with is missing), failing (the check's error below it) or missing (with the command that makes it,
-    docs/models/README.md). Exits 2 unless every file is verified."""
-    from .errors import ModelFileError
-    from .pipeline.config import model_dir
-
-    folder = model_dir(models)
-    files = check_folder(folder, list(pipelines or PAPER_PIPELINES))
-    text, ok = report(folder, files)
-    click.echo(text)
-    if not ok:
-        raise ModelFileError(f"the model folder {folder} is not complete for "
-                             f"{', '.join(pipelines or PAPER_PIPELINES)}: see the list above")

@@ -12,14 +12,8 @@ from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ModelFileError
-from ga3ce_prep.model_folder import (
-    MODEL_FILES,
-    PAPER_PIPELINES,
-    contract,
-    readers,
-    stage_files,
-    table_markdown,
-)
+from ga3ce_prep.model_folder import MODEL_FILES, PAPER_PIPELINES, contract, stage_files
+from ga3ce_prep.models_cli import readers, table_markdown
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch 2.13 on TorchScript
@@ -47,7 +41,7 @@ def test_the_table_is_every_file_the_paper_pipelines_read(tmp_path):
             for f in stage_files(sc, tmp_path):
                 assert f.path.parent == tmp_path / "m", f"{name}: {f.key} reads {f.path} outside the model folder"
     assert table_markdown() in (PAGES / "README.md").read_text(), \
-        "docs/models/README.md's table is stale: print table_markdown() from ga3ce_prep/model_folder.py"
+        "docs/models/README.md's table is stale: print table_markdown() from ga3ce_prep/models_cli.py"
 
 
 def test_the_recipes_write_the_names_the_pipelines_read():
@@ -98,7 +92,7 @@ def _follow(command: str, stand_ins: dict, monkeypatch) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore::UserWarning")  # the exporters' tracer and constant-folding notes
+@pytest.mark.filterwarnings("ignore::UserWarning", "ignore::torch.jit.TracerWarning")  # the exporters' notes
 def test_following_the_recipes_with_stand_in_models_gives_a_folder_models_check_accepts(tmp_path, monkeypatch):
     import torch
 
