@@ -93,7 +93,7 @@ def call_backend(backend: Backend, frame: FrameRef, inputs: dict[str, Any], wind
     (stage -> that stage's output for this frame); a windowed backend (`Backend.window`) also gets
     `window`, the frame's `frames.Window` (without one, e.g. `predict`'s single frame: the frame alone)."""
     stage = backend.stage
-    method = backend.check_frame if stage == "input" else getattr(backend, stage)
+    method = getattr(backend, "check_frame" if stage == "input" else stage)
     args = [inputs[u] for u in UPSTREAM[stage] if u != "input"]
     kwargs = {n: inputs[n] for n in backend.needs}
     if backend.window:

@@ -133,11 +133,12 @@ class Backend:
         frame by frame."""
         return 1
 
-    def batch(self, frames: list[FrameRef], **needs: list[Any]) -> list[Any]:
+    def batch(self, frames: list[FrameRef], *args: Any, **needs: Any) -> list[Any]:
         """The per-frame method on several frames in one call, for a backend whose network runs them
         together: one result or Exception per frame, in order; each of `needs` as a list, one value
         per frame. The pose and view tasks call it on up to batch_size() frames of a shard at a time
-        when batch_size() > 1, so a backend that returns more than 1 overrides it."""
+        when batch_size() > 1, so a backend that returns more than 1 overrides it (naming the needs
+        it reads: `*args, **needs` leaves its signature free)."""
         raise NotImplementedError(f"{type(self).__name__}: batch_size() is {self.batch_size()}, but it has no "
                                   f"batch method")
 
@@ -222,22 +223,25 @@ class ObjectsBackend(Backend):
         raise NotImplementedError
 
 
+# The per-frame methods of the stages whose backends may read more (`needs`, by keyword; `window`):
+# `*args, **needs` leaves each backend's signature free to name what it reads (stages.call_backend
+# passes exactly that); `Sourced` when the backend has `sources`.
 class HeadBackend(Backend):
     stage = "head"
 
-    def head(self, frame: FrameRef, depth: DepthMap) -> np.ndarray:
+    def head(self, frame: FrameRef, depth: DepthMap, *args: Any, **needs: Any) -> np.ndarray | Sourced:
         raise NotImplementedError
 
 
 class PoseBackend(Backend):
     stage = "pose"
 
-    def pose(self, frame: FrameRef) -> np.ndarray:
+    def pose(self, frame: FrameRef, *args: Any, **needs: Any) -> np.ndarray | Sourced:
         raise NotImplementedError
 
 
 class ViewBackend(Backend):
     stage = "view"
 
-    def view(self, frame: FrameRef) -> np.ndarray:
+    def view(self, frame: FrameRef, *args: Any, **needs: Any) -> np.ndarray | Sourced:
         raise NotImplementedError

@@ -83,7 +83,7 @@ def _rice_table() -> tuple[np.ndarray, np.ndarray]:
     xs = np.maximum(x, 1e-9)
     large = (1 + 1 / (8 * xs) + 9 / (128 * xs**2)) / np.sqrt(2 * np.pi * xs)
     i0e = np.where(x < 50.0, small, large)
-    f = np.trapezoid(P**2 * np.exp(-0.5 * (P - R) ** 2) * i0e, rho, axis=1)
+    f = np.asarray(np.trapezoid(P**2 * np.exp(-0.5 * (P - R) ** 2) * i0e, rho, axis=1))
     return r, f
 
 

@@ -53,7 +53,8 @@ class PrecomputedPose(PoseBackend):
                              "the estimator did not find")
         size = pose_size(raw)
         if np.isfinite(size):
-            check_plausible(np.float32([size]) * np.float32(METRES_PER_UNIT[self.p.units]), np.float32([size]),
+            check_plausible(np.array([size], np.float32) * np.float32(METRES_PER_UNIT[self.p.units]),
+                            np.array([size], np.float32),
                             self.p.units, BODY_RANGE_M, f"pose of frame {frame_id} in {self.p.file}",
                             f"stages.pose.params.units (now {self.p.units})", "person size", candidates=LENGTH_UNITS)
         return to_metres(raw, self.p.units)
@@ -139,6 +140,7 @@ class BlazePose(ProcessEstimator, PoseBackend):
         """depth: the depth stage's map of the frame, at the image's resolution."""
         p = self.p
         lm = self.estimator()(load_rgb(frame.image_path), frame.body_box, frame.head_box)
-        measured = {"depth": depth.depth, "valid": depth.valid} if p.depth_refine else {}
-        cam = place_landmarks(lm, np.asarray(frame.K, np.float64), p.min_visibility, p.ray_alignment, **measured)
+        measured, valid = (depth.depth, depth.valid) if p.depth_refine else (None, None)
+        cam = place_landmarks(lm, np.asarray(frame.K, np.float64), p.min_visibility, p.ray_alignment,
+                              depth=measured, valid=valid)
         return to_smpl_head30(cam, lm.visibility, p.min_visibility, p.head_top_height).astype(np.float32)

@@ -177,7 +177,8 @@ class GFIEView(ProcessEstimator, ViewBackend):
         FrameError."""
         from ..estimators.view.head_crop import CropParams, head_input
 
-        inputs, out = [], []
+        inputs: list[np.ndarray] = []
+        out: list[FrameError | None] = []
         for f in frames:
             try:
                 inputs.append(head_input(load_rgb(f.image_path), f.head_box, CropParams()))
@@ -247,15 +248,17 @@ class GafaView(ProcessEstimator, ViewBackend):
             missing = [frame.index + k - WINDOW // 2 for k, f in enumerate(window.frames) if f is None]
             raise FrameError(f"no {WINDOW}-frame window around frame {frame.index} of {frame.sequence or frame.id}: "
                              f"raw frame(s) {missing} missing (GAFA uses only runs of {WINDOW} consecutive frames)")
-        seq = [window.previous, *window.frames]
-        if any(f.keypoints_2d is None for f in seq):
+        frames = [f for f in window.frames if f is not None]  # all of them: the window is complete
+        seq = [window.previous, *frames]
+        keypoints = [f.keypoints_2d for f in seq if f.keypoints_2d is not None]
+        if len(keypoints) < len(seq):
             raise FrameError(f"view/gafa needs OpenPose BODY_25 keypoints (the gafa adapter); a frame of "
                              f"the window around {frame.id} has none")
-        head, body = preprocessed_boxes(np.stack([f.keypoints_2d for f in seq]))
+        head, body = preprocessed_boxes(np.stack(keypoints))
         if not (np.isfinite(body).all() and np.isfinite(head).all() and (body[:, 2:] > 0).all()):
             raise FrameError(f"a frame of the window around {frame.id} has no head or body box from its keypoints")
         est = self.estimator()
-        crops = np.stack([est.crop(f.image_path, b) for f, b in zip(window.frames, body[1:])])
+        crops = np.stack([est.crop(f.image_path, b) for f, b in zip(frames, body[1:])])
         gaze = est.predict(normalize_crops(crops), head_masks(head[1:], body[1:]), body_velocity(body))
         what = f"GAFA's network's output for frame {frame.id}"
         return unit_direction(np.asarray(gaze[WINDOW // 2], np.float64), what)
