@@ -49,6 +49,10 @@ class PointEncoding(nn.Module):
     `pos_scale`). Widths must be even. forward: (..., 3) -> (..., width).
     """
 
+    B_dir: torch.Tensor  # buffers of kind "d3"
+    B_dist: torch.Tensor
+    B_pos: torch.Tensor  # the buffer of kind "standard"
+
     def __init__(self, kind: str, width: int, dir_width: int, dir_scale: float, dist_scale: float,
                  pos_scale: float, generator: torch.Generator):
         super().__init__()

@@ -100,7 +100,8 @@ class ModelConfig:
     fourier_seed: int = 0  # seed of the fixed Gaussian matrices B of every Fourier encoding
 
     def __post_init__(self) -> None:
-        self.head_width_pair = tuple(int(j) for j in self.head_width_pair)  # JSON gives a list
+        a, b = self.head_width_pair
+        self.head_width_pair = (int(a), int(b))  # JSON gives a list
         if self.method in ALIASES:   # the design the alias names today is what this config is
             self.method = ALIASES[self.method]
         if self.method not in METHODS:
@@ -263,6 +264,7 @@ class GA3CE(nn.Module):
         (mean over heads). Eval mode."""
         if self.config.output == "pointer" and self.config.use_objects and self.config.use_context:
             (*_, g), p = self._passes(view, pose, head_pos, objects, mask)
+            assert p is not None  # the pointer output's weights
             return g, p
         g, w = self.cross_attention(view, pose, head_pos, objects, mask)
         return g, w[:, -1].mean(1)

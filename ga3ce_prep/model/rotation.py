@@ -23,9 +23,9 @@ def _xp(a: np.ndarray | torch.Tensor) -> ModuleType:
 
 
 def _unit(v: Array) -> Array:
-    xp = _xp(v)
-    n = xp.sqrt((v * v).sum(-1, keepdims=True) if xp is np else (v * v).sum(-1, keepdim=True))
-    return v / (n + 1e-30) if xp is np else v / n.clamp_min(1e-30)
+    if isinstance(v, torch.Tensor):
+        return v / torch.sqrt((v * v).sum(-1, keepdim=True)).clamp_min(1e-30)
+    return v / (np.sqrt((v * v).sum(-1, keepdims=True)) + 1e-30)
 
 
 def _matrix(rows: list[list[Array]]) -> Array:
@@ -85,10 +85,9 @@ def axis_angle_rotation(v: Array) -> Array:
 
 def identity_rotation(v: Array) -> Array:
     """The "no egocentric transform" ablation: R = I for every frame. v: (..., 3) -> (..., 3, 3)."""
-    xp = _xp(v)
-    if xp is np:
-        return np.broadcast_to(np.eye(3, dtype=v.dtype), (*v.shape[:-1], 3, 3)).copy()
-    return torch.eye(3, dtype=v.dtype, device=v.device).expand(*v.shape[:-1], 3, 3).clone()
+    if isinstance(v, torch.Tensor):
+        return torch.eye(3, dtype=v.dtype, device=v.device).expand(*v.shape[:-1], 3, 3).clone()
+    return np.broadcast_to(np.eye(3, dtype=v.dtype), (*v.shape[:-1], 3, 3)).copy()
 
 
 def rotation(name: str, v: Array) -> Array:

@@ -88,9 +88,11 @@ class GazeTransformer(nn.Module):
         record: list[torch.Tensor] = []
 
         def hook(module: nn.MultiheadAttention, args: tuple, kwargs: dict, output: tuple) -> None:
-            _, w = module.forward(*args[:3], attn_mask=kwargs.get("attn_mask"),
+            query, key, value = args[:3]
+            _, w = module.forward(query, key, value, attn_mask=kwargs.get("attn_mask"),
                                   key_padding_mask=kwargs.get("key_padding_mask"),
                                   need_weights=True, average_attn_weights=False)
+            assert w is not None  # need_weights=True
             record.append(w[:, :, 0].detach())                       # (B, heads, 1 query, 1 + S) -> (B, heads, 1 + S)
 
         handles = [layer.multihead_attn.register_forward_hook(hook, with_kwargs=True)
