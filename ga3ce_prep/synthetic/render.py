@@ -19,6 +19,11 @@ from .room import KINDS, Room
 o3c = o3d.core
 
 
+def _tensor(a: np.ndarray) -> o3c.Tensor:
+    """An Open3D tensor of `a` (a copy, in its dtype, on the CPU)."""
+    return o3c.Tensor(a)  # type: ignore[call-overload]  # open3d's stub omits the dtype and device defaults
+
+
 def _lum(rgb: np.ndarray) -> np.ndarray:
     return rgb @ np.array([0.299, 0.587, 0.114], np.float32)
 
@@ -48,8 +53,8 @@ class StaticScene:
         n = len(room.instances)
         geom_to_inst = []
         for inst in room.instances:
-            gid = self.scene.add_triangles(o3c.Tensor(inst.vertices.astype(np.float32)),
-                                           o3c.Tensor(inst.triangles.astype(np.uint32)))
+            gid = self.scene.add_triangles(_tensor(inst.vertices.astype(np.float32)),
+                                           _tensor(inst.triangles.astype(np.uint32)))
             geom_to_inst.append((gid, inst.id))
         lut = np.full(max(g for g, _ in geom_to_inst) + 2, -1, np.int16)
         for g, i in geom_to_inst:
@@ -65,7 +70,7 @@ class StaticScene:
     def cast(self, rays: np.ndarray) -> dict[str, np.ndarray]:
         """Cast (N, 6) rays; returns t (N,) (inf = miss), instance (N,) int16 (-1 = miss),
         normal (N, 3) world."""
-        out = self.scene.cast_rays(o3c.Tensor(np.ascontiguousarray(rays, np.float32)), nthreads=1)
+        out = self.scene.cast_rays(_tensor(np.ascontiguousarray(rays, np.float32)), nthreads=1)
         gid = out["geometry_ids"].numpy()
         hit = gid != o3d.t.geometry.RaycastingScene.INVALID_ID
         inst = np.full(gid.shape, -1, np.int16)
@@ -160,10 +165,10 @@ class PersonScene:
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, albedo: np.ndarray):
         self.vertices, self.albedo = vertices, albedo
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3c.Tensor(vertices.astype(np.float32)), o3c.Tensor(triangles.astype(np.uint32)))
+        self.scene.add_triangles(_tensor(vertices.astype(np.float32)), _tensor(triangles.astype(np.uint32)))
 
     def cast(self, rays: np.ndarray) -> dict[str, np.ndarray]:
-        out = self.scene.cast_rays(o3c.Tensor(np.ascontiguousarray(rays, np.float32)), nthreads=1)
+        out = self.scene.cast_rays(_tensor(np.ascontiguousarray(rays, np.float32)), nthreads=1)
         return {"t": out["t_hit"].numpy(), "prim": out["primitive_ids"].numpy(),
                 "normal": out["primitive_normals"].numpy()}
 

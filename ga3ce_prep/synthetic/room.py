@@ -270,7 +270,7 @@ class _Builder:
         surfs = self.surfaces
         k = max(1, int(np.ceil(n * (1.0 - cfg.clustering)))) if cfg.clustering < 1 else 1
         # cluster centres: on furniture surfaces by area, some on the floor
-        centres = []
+        centres: list[tuple[Surface, np.ndarray, float]] = []
         for _ in range(k):
             if not surfs or rng.random() < cfg.floor_fraction:
                 s = floor

@@ -37,7 +37,8 @@ class TargetSampler:
         self.cam = cams[0]
         self.in_front = in_front  # out-of-view targets must still lie in front of the camera (2D annotation)
         n = len(room.instances)
-        self.pixels = sum(np.bincount(v.instance[v.instance >= 0].astype(np.int64), minlength=n)[:n] for v in views)
+        self.pixels = sum((np.bincount(v.instance[v.instance >= 0].astype(np.int64), minlength=n)[:n] for v in views),
+                          np.zeros(n, np.int64))
         self.min_pixels = max(2, int(round(30 * self.cam.width * self.cam.height / (640 * 480))))
         self.objects = np.array([i.id for i in room.instances if i.kind == "object"], np.int64)
         kinds = list(TARGET_KINDS)

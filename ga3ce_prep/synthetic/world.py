@@ -93,8 +93,7 @@ class Scene:
         self.body: Body = make_body(float(rng.uniform(*pc.height)), rng)
         given = room
         for _attempt in range(PLACE_ATTEMPTS):
-            if given is None:
-                room = build_room(cfg, rng, sitting=self.posture == "sitting")
+            room = given if given is not None else build_room(cfg, rng, sitting=self.posture == "sitting")
             if self.posture == "sitting" and room.seat is None:
                 self.posture = "standing"
             if self._place(room):
@@ -114,7 +113,11 @@ class Scene:
     # --- layout ------------------------------------------------------------------------------
     def _head_point(self, xy: np.ndarray) -> np.ndarray:
         s = self.body.scale
-        z = (self.room.seat.height + 0.78 * s) if self.posture == "sitting" else 1.62 * s
+        if self.posture == "sitting":
+            assert self.room.seat is not None  # a room without a seat makes the person stand (__init__)
+            z = self.room.seat.height + 0.78 * s
+        else:
+            z = 1.62 * s
         return np.array([xy[0], xy[1], z])
 
     def _place(self, room: Room) -> bool:
@@ -125,8 +128,9 @@ class Scene:
         found = None
         for _ in range(6):
             if self.posture == "sitting":
-                home, heading = (room.seat.xy - 0.08 * np.array([np.cos(room.seat.yaw), np.sin(room.seat.yaw)]),
-                                 room.seat.yaw)
+                seat = room.seat
+                assert seat is not None  # a room without a seat makes the person stand (__init__)
+                home, heading = seat.xy - 0.08 * np.array([np.cos(seat.yaw), np.sin(seat.yaw)]), seat.yaw
             else:
                 iy, ix = np.nonzero(room.free)
                 if not len(iy):
@@ -135,8 +139,8 @@ class Scene:
                 home = room.cell_xy(iy[k], ix[k]) + rng.uniform(-GRID / 2, GRID / 2, 2)
                 if room.surfaces and rng.random() < 0.6:
                     s = room.surfaces[int(rng.integers(len(room.surfaces)))]
-                    c = np.array([0.5 * (s.x0 + s.x1), 0.5 * (s.y0 + s.y1)]) - home
-                    heading = float(np.arctan2(c[1], c[0]))
+                    toward = np.array([0.5 * (s.x0 + s.x1), 0.5 * (s.y0 + s.y1)]) - home
+                    heading = float(np.arctan2(toward[1], toward[0]))
                 else:
                     heading = float(rng.uniform(-np.pi, np.pi))
             head = self._head_point(home)
@@ -272,6 +276,7 @@ class Scene:
                 if gz.angle(gaze, head_dir) <= cap or attempt == 3:
                     break
                 fix = None
+            assert fix is not None  # the attempts end with one (the last is kept)
             target = fix.target.point
             prev_head, prev_yaw = head_dir, yaw_state
             reaching = fix.reach_side >= 0
@@ -398,5 +403,6 @@ class Scene:
     def _walkable_at(self, xy: np.ndarray) -> bool:
         ix, iy = int(xy[0] / GRID), int(xy[1] / GRID)
         f = self.walkable
+        assert f is not None  # a walking person's
         return 0 <= iy < f.shape[0] and 0 <= ix < f.shape[1] and bool(f[iy, ix])
 

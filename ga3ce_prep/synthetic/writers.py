@@ -14,6 +14,7 @@ import csv
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -134,7 +135,7 @@ class GFIEWriter(FormatWriter):
     name = "gfie"
     FOLDER = {v: k for k, v in gfie.SPLIT_FOLDERS.items()}  # split -> folder
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any) -> None:
         super().__init__(*a, **kw)
         self.splits = assign_session_splits(self.n_scenes, self.sessions_per_room, self.seed)
         self.number: list[int] = []
@@ -183,7 +184,7 @@ class CAD120Writer(FormatWriter):
 
     name = "cad120"
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any) -> None:
         super().__init__(*a, **kw)
         self.rows: list[list[str]] = []
         K = self.K
@@ -274,7 +275,7 @@ class GAFAWriter(FormatWriter):
     name = "gafa"
     has_depth = False
 
-    def __init__(self, *a, **kw):
+    def __init__(self, *a: Any, **kw: Any) -> None:
         super().__init__(*a, **kw)
         np.savez(self.out / "intrinsics.npz", cam_mat=np.asarray(self.K, np.float64), dist_coeffs=np.zeros((1, 12)))
         self.acc: dict[int, dict[str, list]] = {}
