@@ -110,7 +110,8 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             from ..estimators.segment.mobilesam_torch import check_device, load_sam
 
             check_device(self.p.device)
-            load_sam(*self.model_files(), "cpu")
+            (checkpoint,) = self.model_files()
+            load_sam(checkpoint, "cpu")
             return
         from ..estimators.runtime.onnx_runtime import resolve_providers
         from ..estimators.segment.mobilesam_runners import ImageEncoder, OfficialDecoder
@@ -126,14 +127,19 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         export's graph),
         and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
         from ..estimators.runtime.onnx_runtime import resolve_providers
-        from ..estimators.segment.mobilesam_runners import OfficialDecoder, mask_mode
+        from ..estimators.segment.mobilesam_runners import MaskDecoder, OfficialDecoder, mask_mode
         from ..files import file_sha256
 
         files = self.model_files()
+        decoder: MaskDecoder | type[MaskDecoder]
         if self.p.runtime == "torch":
-            from ..estimators.segment.mobilesam_torch import TorchDecoder as decoder
+            from ..estimators.segment.mobilesam_torch import TorchDecoder
+
+            decoder = TorchDecoder
         elif self.p.decoder_mode == "fast":
-            from ..estimators.segment.fast_decoder import FastDecoder as decoder
+            from ..estimators.segment.fast_decoder import FastDecoder
+
+            decoder = FastDecoder
         else:
             decoder = OfficialDecoder(files[1], resolve_providers(self.p.providers), 1)
         return {"models": {str(f): file_sha256(f) for f in files}, "mask_mode": mask_mode(decoder),

@@ -61,7 +61,7 @@ def _push_pull(d: np.ndarray) -> np.ndarray:
     w = (d > 0).astype(np.float32)
     if not w.any():
         return d.copy()
-    levels = [(d * w, w)]
+    levels: list[tuple[np.ndarray, np.ndarray]] = [(d * w, w)]
     while min(levels[-1][0].shape) > 1 and levels[-1][1].min() <= 0:
         s, c = levels[-1]
         h, ww = s.shape
@@ -69,7 +69,7 @@ def _push_pull(d: np.ndarray) -> np.ndarray:
         levels.append((cv2.resize(s, size, interpolation=cv2.INTER_AREA),
                        cv2.resize(c, size, interpolation=cv2.INTER_AREA)))
     s, c = levels[-1]
-    filled = np.zeros_like(s)
+    filled: np.ndarray = np.zeros_like(s)
     np.divide(s, c, out=filled, where=c > 0)
     for s, c in reversed(levels[:-1]):
         h, ww = s.shape
@@ -101,13 +101,13 @@ def complete_depth(raw: np.ndarray, p: CompletionParams = CompletionParams()) ->
     top = np.float32(max_depth + 1.0)  # inversion constant: any value above max_depth works
     inv = top - raw
     inv *= valid
-    d16 = (inv * 1000.0 + 0.5).astype(np.uint16)  # inverted depth, mm; 0 = unknown
+    d16: np.ndarray = (inv * 1000.0 + 0.5).astype(np.uint16)  # inverted depth, mm; 0 = unknown
     d16 = cv2.dilate(d16, DIAMOND_5)
     d16 = cv2.morphologyEx(d16, cv2.MORPH_CLOSE, FULL_5)
     np.copyto(d16, cv2.dilate(d16, FULL_7), where=d16 < 100)
     if p.extrapolate:
         has = d16 >= 100
-        col_has = has.any(axis=0)
+        col_has = np.asarray(has.any(axis=0))
         first = np.argmax(has, axis=0)  # top-most valid row per column
         top_vals = d16[first, np.arange(d16.shape[1])]
         rows = np.arange(d16.shape[0])[:, None]

@@ -18,17 +18,17 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..runtime.onnx_runtime import RuntimeParams
-from .monodepth import PRESETS, CropDepth, MonoDepthEstimator, centre_crop, focal_scale
+from .monodepth import PRESETS, CropDepth, MonoDepthEstimator, centre_crop, focal_scale, required
 
 OPTIONS = PRESETS["fastdepth"]
-NET_SIZE = OPTIONS.size[1]
+NET_SIZE = required(OPTIONS.size, "size")[1]
 # horizontal focal length, pixels of the 224-wide input (NYU fx 518.9, 250/480 resize, 304-px crop)
-NET_FOCAL_PX = OPTIONS.focal_px
+NET_FOCAL_PX = required(OPTIONS.focal_px, "focal_px")
 
 
 def centre_crop_4x3(width: int, height: int) -> tuple[int, int, int, int]:
     """The largest centred 4:3 (landscape) crop of a width x height image: (x0, y0, w, h) pixels."""
-    return centre_crop(width, height, OPTIONS.crop_aspect)
+    return centre_crop(width, height, required(OPTIONS.crop_aspect, "crop_aspect"))
 
 
 def focal_rescale(fx: float, crop_width: int) -> float:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -41,6 +41,7 @@ from ..runtime.onnx_runtime import RuntimeParams, create_session, resolve_provid
 INTERPOLATION = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,6 +119,14 @@ def resolve_options(preset: str, overrides: MonoDepthOptions) -> MonoDepthOption
                                         if getattr(overrides, f.name) is not None})
 
 
+def required(value: T | None, name: str) -> T:
+    """A field of resolved options (`resolve_options`: a preset sets every field but size and
+    output_name); ConfigError naming the field when it is unset."""
+    if value is None:
+        raise ConfigError(f"depth options: {name} is unset; take the options from a preset (resolve_options)")
+    return value
+
+
 def centre_crop(width: int, height: int, aspect: tuple[int, ...]) -> tuple[int, int, int, int]:
     """The largest centred crop of aspect W:H = aspect (empty: the whole image) of a width x height
     image: (x0, y0, w, h) pixels."""
@@ -130,11 +139,11 @@ def centre_crop(width: int, height: int, aspect: tuple[int, ...]) -> tuple[int, 
 
 def network_size(width: int, height: int, opt: MonoDepthOptions) -> tuple[int, int]:
     """The network input (H, W) for a width x height crop under `opt` (resize, size, multiple)."""
+    th, tw = required(opt.size, "size")
     if opt.resize == "stretch":
-        return tuple(opt.size)
-    th, tw = opt.size
+        return th, tw
     s = max(th / height, tw / width)
-    m = opt.multiple
+    m = required(opt.multiple, "multiple")
 
     def side(x: float, lo: int) -> int:
         y = int(np.round(x / m) * m)
@@ -172,9 +181,11 @@ class MonoDepthEstimator:
                  runtime: RuntimeParams = RuntimeParams(),  # noqa: B008 - frozen dataclass: safe to share
                  what: str = "depth", fix: str = "the depth backend's units"):
         self.path, self.opt, self.what, self.fix = Path(path), opt, what, fix
-        if len(opt.crop_aspect) not in (0, 2) or not opt.plausible_depth[0] < opt.plausible_depth[1]:
-            raise ConfigError(f"{what}: crop_aspect {list(opt.crop_aspect)} must be [W, H] or [], and plausible_depth "
-                              f"{list(opt.plausible_depth)} [min, max] with min < max")
+        crop_aspect = required(opt.crop_aspect, "crop_aspect")
+        plausible = required(opt.plausible_depth, "plausible_depth")
+        if len(crop_aspect) not in (0, 2) or not plausible[0] < plausible[1]:
+            raise ConfigError(f"{what}: crop_aspect {list(crop_aspect)} must be [W, H] or [], and plausible_depth "
+                              f"{list(plausible)} [min, max] with min < max")
         self.session = create_session(self.path, resolve_providers(runtime.providers), runtime.threads, what)
         where = f"{what} ONNX {self.path}"
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -194,13 +205,14 @@ class MonoDepthEstimator:
         self.input_name = inp.name
         self.fixed = (h, w) if h is not None and w is not None else None
         if opt.resize == "stretch":
-            if opt.size is None and self.fixed is None:
+            size = opt.size or self.fixed
+            if size is None:
                 raise ModelFileError(f"{where}: the input {inp.name!r} {list(inp.shape)} has no fixed height "
                                      "and width; set the depth backend's size [H, W]")
             if opt.size is not None and self.fixed is not None and tuple(opt.size) != self.fixed:
                 raise ModelFileError(f"{where}: the input is fixed at {self.fixed[0]}x{self.fixed[1]} (HxW) but size "
                                      f"is {list(opt.size)}")
-            self.opt = dataclasses.replace(opt, size=tuple(opt.size or self.fixed))
+            self.opt = dataclasses.replace(opt, size=tuple(size))
         elif opt.size is None:
             raise ModelFileError(f"{where}: resize keep_aspect needs a size [H, W] (the lower bound)")
         names = [o.name for o in outputs]
@@ -208,11 +220,11 @@ class MonoDepthEstimator:
             if opt.output_name not in names:
                 raise ModelFileError(f"{where}: no output named {opt.output_name!r}; the outputs are {names}")
             self.output_name = opt.output_name
-        elif opt.output_index >= len(names):
-            raise ModelFileError(
-                f"{where}: output_index {opt.output_index} but the file has {len(names)} outputs {names}")
         else:
-            self.output_name = names[opt.output_index]
+            index = required(opt.output_index, "output_index")
+            if index >= len(names):
+                raise ModelFileError(f"{where}: output_index {index} but the file has {len(names)} outputs {names}")
+            self.output_name = names[index]
         self.mean = np.asarray(opt.mean, np.float32)
         self.std = np.asarray(opt.std, np.float32)
 
@@ -225,7 +237,8 @@ class MonoDepthEstimator:
                              f"(HxW) input under resize {opt.resize}, but the file is fixed at {self.fixed[0]}x"
                              f"{self.fixed[1]}: export it at {H}x{W} (scripts/export_monodepth.py --image-size "
                              f"{crop.shape[1]}x{crop.shape[0]}), or set resize: stretch")
-        x = cv2.resize(crop, (W, H), interpolation=INTERPOLATION[opt.interpolation]).astype(np.float32)
+        interpolation = INTERPOLATION[required(opt.interpolation, "interpolation")]
+        x = cv2.resize(crop, (W, H), interpolation=interpolation).astype(np.float32)
         if opt.input_range == "0-1":
             x = x / 255.0
         if opt.channels == "bgr":
@@ -237,7 +250,7 @@ class MonoDepthEstimator:
         """Depth of an (H, W, 3) uint8 RGB image with intrinsics K (3, 3) at its resolution."""
         opt = self.opt
         H, W = check_rgb(rgb).shape[:2]
-        x0, y0, w, h = centre_crop(W, H, opt.crop_aspect)
+        x0, y0, w, h = centre_crop(W, H, required(opt.crop_aspect, "crop_aspect"))
         x = self.network_input(rgb[y0:y0 + h, x0:x0 + w])
         raw = np.asarray(self.session.run([self.output_name], {self.input_name: x})[0])
         out = raw.squeeze()
@@ -246,13 +259,14 @@ class MonoDepthEstimator:
                                  f"has shape {list(raw.shape)}; "
                                  "expected one (h, w) depth map (with any size-1 batch or channel axes)")
         out = np.where(np.isfinite(out), out, 0).astype(np.float32)
-        d = to_metres(out, opt.units)
+        units, plausible = required(opt.units, "units"), required(opt.plausible_depth, "plausible_depth")
+        d = to_metres(out, units)
         if opt.focal_px:
             d = d * focal_scale(K[0, 0], x.shape[3] if opt.layout == "nchw" else x.shape[2], w, opt.focal_px)
-        check_plausible(d, out, opt.units, opt.plausible_depth, f"{self.what} ONNX {self.path}", self.fix)
+        check_plausible(d, out, units, plausible, f"{self.what} ONNX {self.path}", self.fix)
         d = cv2.resize(d, (w, h), interpolation=cv2.INTER_LINEAR)
         depth = np.zeros((H, W), np.float32)
-        depth[y0:y0 + h, x0:x0 + w] = np.where(d <= opt.plausible_depth[1], np.maximum(d, 0), 0)
+        depth[y0:y0 + h, x0:x0 + w] = np.where(d <= plausible[1], np.maximum(d, 0), 0)
         return CropDepth(depth, depth > 0, (x0, y0, w, h))
 
 

@@ -33,8 +33,13 @@ from ...skeleton import JOINT_NAMES
 from ..runtime.crops import LookAtCrop, look_at_crop, warp_homography
 from .placement import pose_depth_translation
 
-# torch 2.13 deprecates TorchScript (NLF's release format and ours); silenced where we call it
-TORCHSCRIPT_DEPRECATED = dict(action="ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
+
+def ignore_torchscript_deprecation() -> None:
+    """Within warnings.catch_warnings(): torch 2.13 deprecates TorchScript (NLF's release format and
+    ours), silenced where we call it."""
+    warnings.filterwarnings("ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
+
+
 INPUT_DTYPES = {"float32": np.float32, "float16": np.float16, "uint8": np.uint8}
 ORT_TYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "uint8": "tensor(uint8)"}
 
@@ -268,7 +273,7 @@ class TorchScriptCropModel:
         torch.set_num_threads(int(threads))
         try:
             with warnings.catch_warnings():
-                warnings.filterwarnings(**TORCHSCRIPT_DEPRECATED)
+                ignore_torchscript_deprecation()
                 self.module = torch.jit.load(str(path), map_location=device).eval()
         except Exception as e:  # torch raises RuntimeError and others
             raise ModelFileError(f"cannot load {self.where}: {e}") from e

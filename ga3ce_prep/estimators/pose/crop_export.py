@@ -59,7 +59,7 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     (torch.onnx.export, dynamo=False; batch 1 as traced) when `onnx`, and `<stem>.joints.txt` (one
     name per line). Then load them with the pipeline's loaders and compare with the module on
     another crop. A failed ONNX export is reported in `onnx_error`, not raised."""
-    from .crop import TORCHSCRIPT_DEPRECATED, OnnxCropModel, TorchScriptCropModel
+    from .crop import OnnxCropModel, TorchScriptCropModel, ignore_torchscript_deprecation
 
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
@@ -74,7 +74,7 @@ def save_crop_model(module: torch.nn.Module, resolution: int, joint_names: Seque
     joints.write_text("".join(f"{n}\n" for n in joint_names))
     ts = stem.with_suffix(".pt")
     with torch.no_grad(), warnings.catch_warnings():
-        warnings.filterwarnings(**TORCHSCRIPT_DEPRECATED)
+        ignore_torchscript_deprecation()
         traced = torch.jit.trace(module, example, check_trace=False)
         torch.jit.save(torch.jit.script(WithResolution(traced, resolution)), str(ts))
 

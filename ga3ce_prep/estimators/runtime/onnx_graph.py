@@ -61,8 +61,8 @@ class GraphBuilder:
 
     def op(self, op_type: str, *inputs: str, **attrs) -> str:
         out = self._fresh(op_type)
-        inputs = [self._renamed.get(x, x) for x in inputs]
-        self.nodes.append(helper.make_node(op_type, inputs, [out], name=out, **attrs))
+        names = [self._renamed.get(x, x) for x in inputs]
+        self.nodes.append(helper.make_node(op_type, names, [out], name=out, **attrs))
         return out
 
     # numpy-like helpers ---------------------------------------------------------------------

@@ -76,8 +76,8 @@ class AmgOptions:
 LOW_RES = 256  # side of the decoder's low-resolution mask logits
 # Candidates of one prompt in the generator: the multimask outputs (tokens 1..3), or a single-mask
 # export's one output
-MULTIMASK_TOKENS = (1, 2, 3)
-SINGLE_MASK_TOKENS = (0,)
+MULTIMASK_TOKENS: tuple[int, ...] = (1, 2, 3)
+SINGLE_MASK_TOKENS: tuple[int, ...] = (0,)
 
 
 @dataclass(frozen=True)
@@ -163,8 +163,8 @@ def masks_to_boxes(masks: np.ndarray) -> np.ndarray:
     n = masks.shape[0]
     if n == 0:
         return np.zeros((0, 4), np.int64)
-    cols = masks.any(axis=1)          # (n, W)
-    rows = masks.any(axis=2)          # (n, H)
+    cols = np.asarray(masks.any(axis=1))          # (n, W)
+    rows = np.asarray(masks.any(axis=2))          # (n, H)
     W, H = cols.shape[1], rows.shape[1]
     has = cols.any(axis=1)
     x1 = np.argmax(cols, axis=1)
@@ -317,7 +317,7 @@ class StepTimer:
     """Seconds per named step, summed over calls and threads: `with timer("encoder"): ...`; a step
     None is not timed."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
         self._lock = threading.Lock()
 

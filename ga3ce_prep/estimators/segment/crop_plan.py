@@ -18,7 +18,9 @@ class CropPlan(Protocol):
     The exact generator's `EXACT` decodes every prompt and adds nothing; reuse.SequenceReuse reuses
     a key frame's candidates (full-image crop only)."""
 
-    step: str | None  # amg.StepTimer step of plan and merge (None: not timed)
+    @property
+    def step(self) -> str | None:
+        """amg.StepTimer step of plan and merge (None: not timed)."""
 
     def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
         """embedding (1, 256, 64, 64), the grid's prompts coords (n, 2) in the 1024 frame -> (n,)

@@ -121,7 +121,7 @@ class FastDecoder:
 
     def _value(self, array: np.ndarray, dtype: type = np.float32) -> ort.OrtValue:
         """A host array as an OrtValue where the graphs read it (the device with I/O binding)."""
-        a = np.ascontiguousarray(array, dtype)
+        a: np.ndarray = np.ascontiguousarray(array, dtype)
         return ort.OrtValue.ortvalue_from_numpy(a, self.device, 0) if self.io_binding else \
             ort.OrtValue.ortvalue_from_numpy(a)
 
@@ -163,6 +163,7 @@ class FastDecoder:
         """(K, 4096*16, 4) float32 mask logits of the prompts `index` of a predict_iou batch, in the
         mask graph's pixel order (see raw_to_image); `mask_batch` prompts per call at most on the CPU
         provider (`CPU_MASK_BATCH`), `MASK_CHUNK` with I/O binding."""
+        assert self._img is not None  # set before predict_iou, which made the state
         index = np.asarray(index, np.int64)
         step = self.MASK_CHUNK if self.io_binding else self.mask_batch or max(1, len(index))
         parts = []

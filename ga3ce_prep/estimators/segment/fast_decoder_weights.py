@@ -125,7 +125,7 @@ def _transformer(p: _OnnxParams) -> dict[str, np.ndarray]:
     for proj in _PROJ:
         w |= _linear(p, f"/transformer/final_attn_token_to_image/{proj}", f"final.{proj}")
     w |= _layer_norm(p, "/transformer/norm_final_attn", "norm_final")
-    w["ln_eps"] = np.float32(p.attr("/transformer/norm_final_attn/LayerNormalization", "epsilon"))
+    w["ln_eps"] = np.array(p.attr("/transformer/norm_final_attn/LayerNormalization", "epsilon"), np.float32)
     return w
 
 

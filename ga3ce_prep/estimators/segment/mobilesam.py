@@ -66,7 +66,7 @@ class Segmentation:
     boxes: np.ndarray
     points: np.ndarray
     crop_boxes: np.ndarray
-    timings: dict = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
     n_candidates: int = 0
     n_mask_prompts: int = 0
     n_prompts: int = 0
@@ -107,6 +107,8 @@ class MobileSamSegmenter:
     options: SegmenterOptions (generator, ONNX Runtime settings, decoder mode; runtime onnx).
     verify: on load, check the fast decoder against the official graph on a few prompts and refuse
       a mismatch (catches an export whose weights were read wrongly)."""
+
+    checkpoint: Path  # runtime torch (from_checkpoint): the official checkpoint read
 
     def __init__(self, encoder: str | Path, decoder: str | Path, options: SegmenterOptions = DEFAULT_OPTIONS,
                  verify: bool = True):
@@ -189,11 +191,12 @@ class MobileSamSegmenter:
         """The generator's steps over the crops, as the reference's `_generate_masks` and
         `postprocess_small_regions`."""
         opt = self.options
-        img_hw = rgb.shape[:2]
-        out_hw = tuple(out_size) if out_size is not None else img_hw
+        img_hw: tuple[int, int] = rgb.shape[:2]
+        out_hw = (out_size[0], out_size[1]) if out_size is not None else img_hw
         timer = amg.StepTimer()
         boxes, layers = amg.crop_boxes(img_hw, opt.crop_n_layers, opt.crop_overlap_ratio)
-        crops = [amg.Crop(i, tuple(box), layer, img_hw) for i, (box, layer) in enumerate(zip(boxes, layers))]
+        crops = [amg.Crop(i, (x0, y0, x1, y1), layer, img_hw)
+                 for i, ((x0, y0, x1, y1), layer) in enumerate(zip(boxes, layers))]
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
         layer = EXACT if reuse is None else reuse
         parts = [self._process_crop(rgb, crop, grids[crop.layer], timer, layer) for crop in crops]
@@ -319,13 +322,14 @@ class MobileSamSegmenter:
         {row: (H, W) bool} of the changed masks."""
         opt = self.options
         area = opt.min_mask_region_area
-        new, changed = [], []
+        new: list[np.ndarray] = []
+        was_changed: list[bool] = []
         for low_res, ci in zip(data.low_res, data.crop_index):
             mask, holes = amg.remove_small_regions(crops[ci].mask(low_res, crops[ci].image_hw), area, "holes")
             mask, islands = amg.remove_small_regions(mask, area, "islands")
             new.append(mask)
-            changed.append(holes or islands)
-        changed = np.array(changed)
+            was_changed.append(holes or islands)
+        changed = np.array(was_changed)
         boxes = amg.masks_to_boxes(np.stack(new))                                  # (n, 4)
         keep = amg.box_nms(boxes, (~changed).astype(np.float64), max(opt.box_nms_thresh, opt.crop_nms_thresh))
         data = replace(data, box=np.where(changed[:, None], boxes, data.box)).filter(keep)

@@ -66,7 +66,7 @@ def resize_longest_side(rgb: np.ndarray, long_side: int = IMG_SIZE) -> np.ndarra
     """(H, W, 3) uint8 RGB resized so that its longest side is `long_side` ((newh, neww) rounded
     half up), with Pillow's bilinear filter as the reference's torchvision resize of a PIL image."""
     newh, neww = amg.preprocess_shape(rgb.shape[0], rgb.shape[1], long_side)
-    return np.asarray(Image.fromarray(rgb).resize((neww, newh), Image.BILINEAR))
+    return np.asarray(Image.fromarray(rgb).resize((neww, newh), Image.Resampling.BILINEAR))
 
 
 def normalise_and_pad(resized: np.ndarray) -> np.ndarray:
@@ -137,13 +137,13 @@ class OfficialDecoder:
     batch_size: prompts per `predict_iou` call when the generator uses it (the generator passes its
       points_per_batch)."""
 
-    def __init__(self, path: str | Path, providers: Sequence[str], threads: int, batch_size: int = 1):
+    def __init__(self, path: str | Path, providers: Sequence[str], threads: int, batch_size: int | None = 1):
         self.path = Path(path)
         self.session = create_session(self.path, providers, threads, "MobileSAM decoder")
         self.names = check_contract(self.session, DECODER_INPUTS, DECODER_OUTPUTS, self.path, "MobileSAM decoder")
         self.batched = input_dims(self.session, self.names["point_coords"])[0] is None
         self.max_batch = 8
-        self.batch_size = batch_size
+        self.batch_size: int | None = batch_size
         self._emb: np.ndarray | None = None
         self.masks_per_prompt = self._probe()
         self.candidate_tokens = amg.MULTIMASK_TOKENS if self.masks_per_prompt == 4 else amg.SINGLE_MASK_TOKENS
@@ -191,6 +191,8 @@ class OfficialDecoder:
 
     def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(iou_predictions (B, M), low_res_masks (B, M, 256, 256) as the state)."""
+        if self._emb is None:
+            raise RuntimeError("call set_image() before predict_iou()")
         iou, low = self(self._emb, point_coords, point_labels, (IMG_SIZE, IMG_SIZE),
                         outputs=("iou_predictions", "low_res_masks"))
         return iou, low
@@ -224,9 +226,10 @@ class MaskDecoder(Protocol):
         """(n, 256, 256) logits of candidates (prompt index in the batch, column of the IoUs)."""
 
 
-def mask_mode(decoder: MaskDecoder | type) -> Literal["multimask", "single-mask"]:
-    """What a decoder gives the generator per grid point: "multimask" (3 candidates, tokens 1..3,
-    as segment-anything's generator) or "single-mask" (a single-mask export's one mask)."""
+def mask_mode(decoder: MaskDecoder | type[MaskDecoder]) -> Literal["multimask", "single-mask"]:
+    """What a decoder (or a decoder class whose candidates are fixed) gives the generator per grid
+    point: "multimask" (3 candidates, tokens 1..3, as segment-anything's generator) or "single-mask"
+    (a single-mask export's one mask)."""
     return "multimask" if tuple(decoder.candidate_tokens) == amg.MULTIMASK_TOKENS else "single-mask"
 
 
@@ -300,7 +303,7 @@ class OnnxRunners:
 
 
 def open_onnx(encoder: str | Path, decoder: str | Path, providers: str | Sequence[str], threads: int,
-              decoder_mode: str, io_binding: str, points_per_batch: int | None) -> OnnxRunners:
+              decoder_mode: str, io_binding: Literal["auto", "on", "off"], points_per_batch: int | None) -> OnnxRunners:
     """The ONNX Runtime sessions of the encoder and decoder files (SegmenterOptions' providers,
     threads, decoder_mode, io_binding; the official graph's batches of points_per_batch).
     ModelFileError / ConfigError for a decoder mode or an I/O binding that cannot run."""

@@ -19,7 +19,7 @@ logits (n, 256, 256) come back to the host. On the CPU, batches of `CPU_BATCH_SI
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from ...errors import ConfigError, ModelFileError
 from .amg import MULTIMASK_TOKENS
 from .mobilesam_code import FIX
 from .mobilesam_runners import check_rgb, normalise_and_pad, resize_longest_side
+
+if TYPE_CHECKING:
+    import torch
 
 
 def check_device(device: str) -> None:
@@ -100,7 +103,8 @@ class TorchDecoder:
         self.sam, self.device = sam, device
         self.batch_size: int | None = None if device == "cuda" else self.CPU_BATCH_SIZE
         self.chunk = self.CUDA_CHUNK if device == "cuda" else self.CPU_BATCH_SIZE
-        self._emb = self._pe = None
+        self._emb: torch.Tensor | None = None
+        self._pe: torch.Tensor | None = None
 
     def set_image(self, image_embeddings: np.ndarray) -> None:
         """image_embeddings (1, 256, 64, 64) float32."""

@@ -161,14 +161,14 @@ def box_cells(boxes: np.ndarray, image_hw: tuple[int, int], margin: int) -> np.n
 def mask_cells(low_res: np.ndarray) -> np.ndarray:
     """(n, 256, 256) low-res logits of the 1024 input -> (n, 64, 64) bool: cells the mask (> 0) touches."""
     f = amg.LOW_RES // GRID
-    return (low_res > 0.0).reshape(len(low_res), GRID, f, GRID, f).any(axis=(2, 4))
+    return np.asarray((low_res > 0.0).reshape(len(low_res), GRID, f, GRID, f).any(axis=(2, 4)))
 
 
 def dilate(cells: np.ndarray, r: int) -> np.ndarray:
     """(64, 64) bool grown by r cells (a (2r+1)^2 square)."""
     if r == 0:
         return cells
-    return cv2.dilate(cells.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+    return np.asarray(cv2.dilate(cells.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))) > 0
 
 
 class SequenceReuse:
@@ -199,6 +199,7 @@ class SequenceReuse:
     def changed_cells(self, embedding: np.ndarray) -> np.ndarray:
         """(64, 64) bool cells changed since the key frame (embedding, depth, person boxes)."""
         k, c = self.key, self.cues
+        assert k is not None and c is not None and self._person is not None, "a reuse frame, after start()"
         emb = embedding.reshape(-1, GRID, GRID)
         changed = np.linalg.norm(emb - k.embedding, axis=0) > self.p.reuse_embedding_change * k.mean_norm
         if c.depth is not None and k.depth is not None and c.depth.shape == k.depth.shape:
@@ -212,11 +213,13 @@ class SequenceReuse:
         """embedding (1, 256, 64, 64), the grid prompts coords (n, 2) in the 1024 frame -> (n,) bool
         prompts to decode, or None for a key frame (decode all)."""
         c, k = self.cues, self.key
+        assert c is not None, "start(cues) before the frame is segmented"
         reason = ("first" if k is None or k.image_hw != c.image_hw else
                   "gap" if self.last_index is None or c.index != self.last_index + 1 else
                   "age" if self.age + 1 >= self.p.reuse_max_age else "")
         decode = None
         if not reason:
+            assert k is not None  # no reason: a key frame to reuse
             changed = self._changed = self.changed_cells(embedding)
             cell = np.clip(np.floor(coords / CELL).astype(np.int64), 0, GRID - 1)     # (n, 2) x, y
             decode = dilate(changed, self.p.reuse_neighbourhood)[cell[:, 1], cell[:, 0]]
@@ -239,8 +242,10 @@ class SequenceReuse:
         generator's filters (`options`; decoded at `margin`), kept as the new key with the near
         misses; else the key's candidates of the prompts not decoded plus `decoded`, in prompt order."""
         c, plan, embedding = self.cues, self._plan, self._embedding
+        assert c is not None and embedding is not None, "merge() follows plan()"
         self._embedding = None
         if plan is None:
+            assert self._person is not None  # set by start()
             m = self.p.reuse_score_margin
             passes = options.iou_passes(decoded.iou) & options.stability_passes(decoded.stability)
             near = ~options.iou_passes(decoded.iou, -m) | ~options.stability_passes(decoded.stability, -m)
@@ -253,6 +258,7 @@ class SequenceReuse:
             self.age = 0
         else:
             k = self.key
+            assert k is not None and self._changed is not None  # a reuse frame: plan() found what changed
             stale = k.cells[:, self._changed].any(axis=1)     # kept candidates reaching into a changed cell
             kept = np.flatnonzero(~plan[k.records.prompt] & ~stale)
             out = self._merged_winners(k.records, kept, decoded)
@@ -269,6 +275,7 @@ class SequenceReuse:
         rows = np.concatenate([kept, n + np.arange(len(decoded))])
         rows = rows[np.argsort(np.concatenate([key.prompt[kept], decoded.prompt]), kind="stable")]
         box, iou = np.concatenate([key.box, decoded.box])[rows], np.concatenate([key.iou, decoded.iou])[rows]
+        assert self.key is not None  # a reuse frame's
         rows = rows[np.sort(amg.box_nms(box, iou, self.key.options.box_nms_thresh))]
         from_key = np.argsort(rows >= n, kind="stable")     # rows[from_key]: the key's rows first, as `cat` puts them
         out = key.filter(rows[rows < n]).cat(decoded.filter(rows[rows >= n] - n))
@@ -278,6 +285,7 @@ class SequenceReuse:
         """The rows of `merge`'s result that won NMS: on a key frame, remembered with their masks' cells."""
         if self.last is not None and self.last.key:
             k = self.key
+            assert k is not None  # merge() made this key frame's
             keep = np.asarray(keep, np.int64)    # rows of the key's records (merge returned them as they are)
             # the near misses that no winner with a higher score suppresses would win if they passed
             both = k.records.filter(keep).cat(k.near_fail)

@@ -42,8 +42,8 @@ from ..runtime.onnx_runtime import RuntimeParams, TensorSpec, check_contract, cr
 
 CROP_H, CROP_W = 256, 192  # GAFA's body crop, pixels
 BLUR_WIDTH = 720           # GAFA's pre-blur: frames are resized to this width and back before cropping
-MEAN = np.float32([0.485, 0.456, 0.406]) * np.float32(255)  # ImageNet, on 0-255 RGB (albumentations Normalize)
-INV_STD = np.reciprocal(np.float32([0.229, 0.224, 0.225]) * np.float32(255))
+MEAN = np.array([0.485, 0.456, 0.406], np.float32) * np.float32(255)  # ImageNet on 0-255 RGB (albumentations Normalize)
+INV_STD = np.reciprocal(np.array([0.229, 0.224, 0.225], np.float32) * np.float32(255))
 INPUTS = [TensorSpec("image", (1, WINDOW, 3, CROP_H, CROP_W)), TensorSpec("head_mask", (1, WINDOW, 1, CROP_H, CROP_W)),
           TensorSpec("body_dv", (1, WINDOW, 2))]
 OUTPUTS = [TensorSpec("gaze", (1, WINDOW, 3))]

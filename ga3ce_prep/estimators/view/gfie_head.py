@@ -26,7 +26,7 @@ from __future__ import annotations
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -39,6 +39,7 @@ from .resnet import ResNet50
 
 PREFIX = "egd_module."  # the head network's keys inside GFIENet's state dict
 OTHER_BRANCHES = ("ggh_module.",)  # GFIENet's other branch with weights (PSFoV has none): not read
+NetT = TypeVar("NetT", bound=nn.Module)
 
 
 class GFIEHeadNet(nn.Module):
@@ -60,7 +61,9 @@ def _numpy_scalar_globals() -> list[Any]:
     try:
         from numpy._core.multiarray import scalar
     except ImportError:  # numpy 1.x
-        from numpy.core.multiarray import scalar
+        from numpy.core import multiarray as numpy1_multiarray
+
+        scalar = numpy1_multiarray.scalar
     dtypes = {type(np.dtype(c)) for c in ("b1", "i4", "i8", "f2", "f4", "f8")}
     return [(scalar, "numpy.core.multiarray.scalar"), (scalar, "numpy._core.multiarray.scalar"), np.dtype, *dtypes]
 
@@ -88,8 +91,8 @@ def matched_state(state: Mapping[str, Any], net: nn.Module, path: str | Path, pr
     return {k[len(prefix):]: state[k] for k in expected}
 
 
-def load_gfie_weights(path: str | Path, net: nn.Module, prefix: str = "", ignore: tuple[str, ...] = (),
-                      what: str = "GFIE's network") -> nn.Module:
+def load_gfie_weights(path: str | Path, net: NetT, prefix: str = "", ignore: tuple[str, ...] = (),
+                      what: str = "GFIE's network") -> NetT:
     """`net` (eval mode, CPU) with its weights from GFIE's checkpoint at `path` (`matched_state`),
     read with weights_only=True (numpy scalars allowed, nothing else runs) and memory-mapped so the
     tensors not asked for (the optimiser, an ignored branch) are not read. ModelFileError naming

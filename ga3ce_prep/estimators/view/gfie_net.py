@@ -149,13 +149,13 @@ class DepthRecipe:
 
 
 RECIPES: dict[str, DepthRecipe] = {"gfie": DepthRecipe("bicubic", False), "cad120": DepthRecipe("nearest", True)}
-_FILTERS = {"bicubic": Image.BICUBIC, "nearest": Image.NEAREST}
+_FILTERS = {"bicubic": Image.Resampling.BICUBIC, "nearest": Image.Resampling.NEAREST}
 
 
 def scene_input(rgb: np.ndarray) -> np.ndarray:
     """The (H, W, 3) uint8 RGB image resized to 224 x 224 (Pillow bilinear, aspect not kept) and
     ImageNet-normalised: (1, 3, 224, 224) float32."""
-    small = Image.fromarray(check_rgb(rgb)).resize((INPUT_SIZE, INPUT_SIZE), Image.BILINEAR)
+    small = Image.fromarray(check_rgb(rgb)).resize((INPUT_SIZE, INPUT_SIZE), Image.Resampling.BILINEAR)
     return network_input(np.asarray(small))
 
 

@@ -71,7 +71,7 @@ def head_crop(rgb: np.ndarray, box: np.ndarray, p: CropParams = CropParams()) ->
     if x2 <= x1 or y2 <= y1:
         raise FrameError(f"head box {box.tolist()} crops to nothing ({x1}, {y1}, {x2}, {y2})")
     region = Image.fromarray(check_rgb(rgb)).crop((x1, y1, x2, y2))
-    return np.asarray(region.resize((p.input_size, p.input_size), Image.BILINEAR))
+    return np.asarray(region.resize((p.input_size, p.input_size), Image.Resampling.BILINEAR))
 
 
 def head_input(rgb: np.ndarray, box: np.ndarray, p: CropParams = CropParams()) -> np.ndarray:
@@ -83,7 +83,7 @@ def head_input(rgb: np.ndarray, box: np.ndarray, p: CropParams = CropParams()) -
 def network_input(image: np.ndarray, p: CropParams = CropParams()) -> np.ndarray:
     """Step 4 on an (S, S, 3) uint8 RGB image: (1, 3, S, S) ("nchw") or (1, S, S, 3) ("nhwc")
     float32, (pixel / 255 - mean) / std in `p.channels` order."""
-    x = image.astype(np.float32) / np.float32(255)
+    x: np.ndarray = image.astype(np.float32) / np.float32(255)
     if p.channels == "bgr":
         x = x[..., ::-1]
     x = (x - np.asarray(p.mean, np.float32)) / np.asarray(p.std, np.float32)

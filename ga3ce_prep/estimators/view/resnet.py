@@ -8,6 +8,8 @@ With the 1000-way fc it has 25,557,032 parameters; `num_classes=None` leaves the
 2048-d pooled feature is the output, (N, 2048, 1, 1))."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
@@ -45,6 +47,12 @@ class ResNet50(nn.Module):
     """(N, 3, H, W) normalised image -> (N, num_classes) logits, or the pooled (N, 2048, 1, 1)
     feature when num_classes is None. Initialised as torchvision does (Kaiming-normal fan-out
     convs, BN weight 1 and bias 0)."""
+
+    if TYPE_CHECKING:  # not at run time: TorchScript cannot read a string annotation
+        layer1: nn.Sequential  # the four stages of Bottlenecks, set in __init__ (LAYERS, WIDTHS)
+        layer2: nn.Sequential
+        layer3: nn.Sequential
+        layer4: nn.Sequential
 
     def __init__(self, num_classes: int | None = 1000):
         super().__init__()
