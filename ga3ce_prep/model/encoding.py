@@ -13,6 +13,7 @@ model), so the encoding is a fixed function of the configuration.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -49,9 +50,10 @@ class PointEncoding(nn.Module):
     `pos_scale`). Widths must be even. forward: (..., 3) -> (..., width).
     """
 
-    B_dir: torch.Tensor  # buffers of kind "d3"
-    B_dist: torch.Tensor
-    B_pos: torch.Tensor  # the buffer of kind "standard"
+    if TYPE_CHECKING:  # not at run time: TorchScript cannot read a string annotation
+        B_dir: torch.Tensor  # buffers of kind "d3"
+        B_dist: torch.Tensor
+        B_pos: torch.Tensor  # the buffer of kind "standard"
 
     def __init__(self, kind: str, width: int, dir_width: int, dir_scale: float, dist_scale: float,
                  pos_scale: float, generator: torch.Generator):
