@@ -26,10 +26,12 @@ import logging
 import os
 import tempfile
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .faults import fault
 from .location import Location, filesystem, is_remote
@@ -78,7 +80,7 @@ def file_identity(path: str | Path | None) -> list[Any] | None:
         return [str(path), None, None]
 
 
-def content_digest(arrays: dict[str, Any]) -> str:
+def content_digest(arrays: Mapping[str, Any]) -> str:
     """SHA-256 hex of an entry's arrays as they read back: by name (sorted), each array's dtype,
     shape and bytes; the DIGEST member itself left out."""
     h = hashlib.sha256()
@@ -90,7 +92,7 @@ def content_digest(arrays: dict[str, Any]) -> str:
         if a.dtype.kind == "O":  # not in an entry (it could not be read back without pickle): hashed all the same
             h.update(repr(a.tolist()).encode())
         else:  # the bytes, without a copy
-            h.update(np.ascontiguousarray(a).reshape(-1).view(np.uint8))
+            h.update(np.ascontiguousarray(a).reshape(-1).view(np.uint8).data)
     return h.hexdigest()
 
 
@@ -117,30 +119,31 @@ class Cache:
     def __init__(self, root: Location):
         self.remote = is_remote(root)
         self.root: Location = str(root).rstrip("/") if self.remote else Path(root)
-        self.fs = filesystem(str(root), "the stage cache") if self.remote else None
+        # fsspec's filesystem (untyped) for a remote cache; a local one (root a Path) has none
+        self.fs: Any = filesystem(str(root), "the stage cache") if self.remote else None
 
     def remove_temporaries(self) -> None:
         """Remove the temporary files a killed run left (only while holding the run lock; a
         remote cache has none)."""
-        if not self.remote:
+        if isinstance(self.root, Path):
             for tmp in self.root.glob("*/*/.*.tmp"):
                 tmp.unlink(missing_ok=True)
 
     def path(self, stage: str, key: str) -> Location:
         name = f"{stage}/{key[:2]}/{key}.npz"
-        return f"{self.root}/{name}" if self.remote else self.root / name
+        return self.root / name if isinstance(self.root, Path) else f"{self.root}/{name}"
 
     def has(self, stage: str, key: str) -> bool:
         p = self.path(stage, key)
-        return self.fs.exists(p) if self.remote else p.is_file()
+        return p.is_file() if isinstance(p, Path) else self.fs.exists(p)
 
     def entries(self) -> set[tuple[str, str]]:
         """(stage, key) of every entry, from one listing (a remote cache answers it in a few
         requests, not one per entry)."""
-        if self.remote:
-            names = [f for f in self.fs.find(self.root) if f.endswith(".npz")]
-        else:
+        if isinstance(self.root, Path):
             names = [str(p) for p in self.root.glob("*/*/*.npz")]
+        else:
+            names = [f for f in self.fs.find(self.root) if f.endswith(".npz")]
         return {(parts[-3], parts[-1][:-len(".npz")]) for parts in (n.rsplit("/", 3) for n in names)}
 
     def load(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
@@ -148,8 +151,10 @@ class Cache:
         unreadable), lacks its arrays or no longer matches its content digest (then it is removed,
         with a warning)."""
         p = self.path(stage, key)
-        source: io.BytesIO | Path = p
-        if self.remote:
+        source: io.BytesIO | Path
+        if isinstance(p, Path):
+            source = p
+        else:
             try:  # network errors are raised, not taken for a damaged entry
                 source = io.BytesIO(self.fs.cat_file(p))
             except FileNotFoundError:
@@ -174,19 +179,19 @@ class Cache:
             return None
         except Exception as e:  # whatever a damaged file makes zipfile or numpy raise
             log.warning("cache entry %s is damaged (%s: %s): removed, it is computed again", p, type(e).__name__, e)
-            self.fs.rm_file(p) if self.remote else p.unlink(missing_ok=True)
+            p.unlink(missing_ok=True) if isinstance(p, Path) else self.fs.rm_file(p)
             return None
 
-    def save(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> Location:
+    def save(self, stage: str, key: str, arrays: Mapping[str, npt.ArrayLike]) -> Location:
         """Write an entry atomically, with the SHA-256 of its arrays (DIGEST): locally a temp file,
         fsync, rename, fsync the directory; remote one PUT of the whole entry."""
         if DIGEST in arrays:
             raise ValueError(f"a cache entry's array may not be named {DIGEST!r}")
         arrays = {**arrays, DIGEST: np.array(content_digest(arrays))}
         p = self.path(stage, key)
-        if self.remote:
+        if not isinstance(p, Path):
             buf = io.BytesIO()
-            np.savez(buf, **arrays)
+            np.savez(buf, allow_pickle=True, **arrays)  # savez's default, named: the arrays are keywords too
             fault("cache.tmp")
             self.fs.pipe_file(p, buf.getvalue())
             fault("cache.saved")
@@ -195,7 +200,7 @@ class Cache:
         fd, tmp = tempfile.mkstemp(prefix=f".{key[:16]}.", suffix=".tmp", dir=p.parent)
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
+                np.savez(f, allow_pickle=True, **arrays)
                 f.flush()
                 os.fsync(f.fileno())
             fault("cache.tmp")

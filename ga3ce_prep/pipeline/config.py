@@ -174,7 +174,8 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
         cls = backend_class(stage, backend).Params
         params = {**defaults(cls), **sc.get("params", {})}
         sc["params"] = params
-        data_files, model_files = {}, {}
+        data_files: dict[str, Path] = {}
+        model_files: dict[str, Path] = {}
         resolved = dict(params)
         for name, spec in file_fields(cls).items():
             kind = spec["x-file"]

@@ -282,12 +282,12 @@ def _split_code(split: str) -> int:
         raise StoreError(f"split {split!r} is not one of {list(SPLITS)} (adapter bug)") from None
 
 
-def _finished_counts(out: Path, run_key: str) -> FinalizeCounts | None:
+def _finished_counts(out: Location, run_key: str) -> FinalizeCounts | None:
     """The counts of the store at `out` if it is an intact finished store of this run key, else None."""
     try:
         import zarr
 
-        attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+        attrs: dict[str, Any] = dict(zarr.open_group(str(out), mode="r").attrs)  # JSON
     except Exception:  # no store, or not a store
         return None
     if (attrs.get("run") or {}).get("key") != run_key:

@@ -142,6 +142,7 @@ def _execute_distributed(env: TaskEnv, tasks: list[Delayed], bars: _Bars, worker
         if scheduler:
             client = stack.enter_context(Client(scheduler))
         else:
+            assert workers is not None  # execute() runs locally when neither is given
             with warnings.catch_warnings():  # "port 8787 in use" for the (unused) HTTP server
                 warnings.simplefilter("ignore")
                 cluster = stack.enter_context(LocalCluster(

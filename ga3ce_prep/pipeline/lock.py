@@ -132,6 +132,7 @@ class RunLock:
             return {}
 
     def _take_lease(self) -> None:
+        assert self.lease is not None  # a remote work directory's
         self.fs = filesystem(self.lease, "--work")
         try:
             self.fs.pipe_file(self.lease, self._record(), mode="create")

@@ -231,7 +231,8 @@ def _check_output(out: Location, conf: PipelineConfig, data_root: Path, overwrit
     if is_remote(out):
         exists, is_store = _probe(str(out))
     else:
-        exists, is_store = out.exists(), any((out / m).is_file() for m in ZARR_MARKERS)
+        local = Path(out)
+        exists, is_store = local.exists(), any((local / m).is_file() for m in ZARR_MARKERS)
     if not exists:
         return
     if not is_store:
@@ -248,7 +249,7 @@ def _other_store(out: Location, conf: PipelineConfig, data_root: Path) -> str | 
     import zarr
 
     try:
-        attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+        attrs: dict[str, Any] = dict(zarr.open_group(str(out), mode="r").attrs)  # JSON
     except Exception as e:  # a damaged or unknown root: not known to be ours
         return f"a Zarr store whose root metadata cannot be read ({type(e).__name__}: {e})"
     if attrs == UNFINISHED:
@@ -309,7 +310,8 @@ def _write_problem(e: OSError, phase: str, work: Location, out: Location, cache:
 
     in_cache = under(cache.root) if at else phase == "cache"
     beside = None if is_remote(out) else Path(f"{out}.finalize")  # finalize.scratch_dir: building beside --out
-    by_out = under(out) or under(beside) if at else phase == "finalize" and (beside is None or beside.exists())
+    by_out = (under(out) or (beside is not None and under(beside)) if at
+              else phase == "finalize" and (beside is None or beside.exists()))
     if at == f"{out}.lock":
         place, need, fix = f"the output's lock file beside --out {out}", None, "choose another --out"
     elif in_cache:

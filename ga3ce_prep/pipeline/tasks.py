@@ -82,7 +82,7 @@ def task_stages(upstream: dict[str, tuple[str, ...]]) -> dict[str, tuple[str, ..
     order = dependency_order(upstream)
     geometry = tuple(s for s in order if s == "depth" or "depth" in upstream[s])
     # in an order where every kind comes after the kinds it waits for (pose never reads the view)
-    kinds = {"input": ("input",)}
+    kinds: dict[str, tuple[str, ...]] = {"input": ("input",)}
     if "pose" not in geometry:
         kinds["pose"] = ("pose",)
     kinds["geometry"] = geometry
@@ -274,7 +274,7 @@ def new_entry(stage: str, shard: Shard, sources: tuple[str, ...] = ()) -> StageE
                           head_pos=np.full((n, 3), np.nan, np.float32))
     if stage in ("pose", "view"):  # (N_JOINTS, 3) or (3,)
         shape = {"pose": (N_JOINTS, 3), "view": (3,)}[stage]
-        return StageEntry(stage, shard, lambda v: {stage: _shaped(v, shape, stage)}, sources=sources,
+        return StageEntry(stage, shard, lambda v: {stage: _shaped(v, shape, stage)}, ragged=None, sources=sources,
                           **{stage: np.full((n, *shape), np.nan, np.float32)})
     return StageEntry(stage, shard)  # input: ok flags and failures only
 
@@ -389,7 +389,7 @@ def geometry_task(env: TaskEnv, shard: Shard, *_upstream: Any) -> list[StageRepo
     depth_fn = backend(env, "depth").depth
     for s in todo:
         backend(env, s).start_shard()
-    for i in np.flatnonzero(ok):
+    for i in np.flatnonzero(ok).tolist():
         f = shard.frames[i]
         dm = _depth_for(i, f, entries["depth"], depth_fn, cached, env.cache_depth_maps)
         if dm is None:
