@@ -70,6 +70,11 @@ ABLATIONS: tuple[Ablation, ...] = (
 BY_NAME = {a.name: a for a in ABLATIONS}
 
 
+def _paper_ratio(mae: float | None, appearance_mae: float | None) -> float | None:
+    """The paper's MAE over its appearance-only row's (None where the paper reports none)."""
+    return mae / appearance_mae if mae and appearance_mae else None
+
+
 def default_rows(method: str) -> list[str]:
     """Every row for base design `method` (or an alias of it): the paper's ablations, the paper's
     GA3CE and `ours`, less the row that would train the base design again."""
@@ -127,7 +132,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
         raise ValueError(f"rows {names} train the same design twice (an alias and the design it names: "
                          f"{', '.join(f'{a} = {d}' for a, d in ALIASES.items())}); keep one")
     seeds = seeds or [base.seed]
-    results = []
+    results: list[dict[str, Any]] = []
     prior_mae = math.nan
     for name in names:
         ab = BY_NAME[name]
@@ -149,6 +154,7 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             prior_mae = r.methods["view_prior"].mae3d
             evals.append(r)
         mae = float(np.mean(maes))
+        row: dict[str, Any]  # a JSON row of the summary
         row = {"name": name, "design": dataclasses.replace(base.model, **ab.overrides).method,
                "label": row_label(ab, base.model), "table4": ab.table4, "table5": ab.table5,
                "mae3d": mae, "mae3d_std": float(np.std(maes)) if len(maes) > 1 else None,
@@ -156,8 +162,8 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
                "ratio_std": float(np.std(maes)) / prior_mae if len(maes) > 1 else None,
                "mae2d": float(np.mean([e.model.mae2d for e in evals])),
                "paper_gfie": ab.paper_gfie, "paper_gafa": ab.paper_gafa,
-               "paper_ratio_gfie": ab.paper_gfie / BY_NAME["appearance"].paper_gfie if ab.paper_gfie else None,
-               "paper_ratio_gafa": ab.paper_gafa / BY_NAME["appearance"].paper_gafa if ab.paper_gafa else None}
+               "paper_ratio_gfie": _paper_ratio(ab.paper_gfie, BY_NAME["appearance"].paper_gfie),
+               "paper_ratio_gafa": _paper_ratio(ab.paper_gafa, BY_NAME["appearance"].paper_gafa)}
         results.append(row)
     profile = DatasetProfile.for_store(open_store(base.store))
     full = next((r for r in results if r["name"] == "full"), None)

@@ -72,8 +72,8 @@ def figure_frames(model: GA3CE, ds: ContextDataset, n: int = 8, n_max: int | Non
     attention = null = None
     if model.config.use_context:
         model.eval()
-        _, w = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
-        w = w.cpu().numpy()                                                  # (n, 1 + S'), S' = 0 without objects
+        _, weights = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
+        w = weights.cpu().numpy()                                            # (n, 1 + S'), S' = 0 without objects
         null = w[:, 0]
         attention = np.zeros(b.mask.shape, np.float32)
         attention[:, : w.shape[1] - 1] = w[:, 1:]
@@ -116,7 +116,7 @@ def plot_qualitative_grid(store: ContextStore, fr: FigureFrames, path: str | Pat
 def plot_attention(store: ContextStore, fr: FigureFrames, path: str | Path, refs: dict | None = None,
                    cols: int = 4) -> Path:
     """The model's weight of each object in the image (module docstring)."""
-    if fr.attention is None:
+    if fr.attention is None or fr.null is None:  # both set, or neither (figure_frames)
         raise ValueError("these frames have no attention (a model without context, the appearance-only row)")
     refs = refs or {}
     plt, fig, axes = _panels(len(fr.rows), min(cols, len(fr.rows)), (4.2, 3.9))

@@ -55,7 +55,7 @@ def heatmap_auc(heatmap: np.ndarray, target_2d: np.ndarray, size: tuple[int, int
     gx, gy = (float(c) for c in target_2d)
     if not (math.isfinite(gx) and math.isfinite(gy)) or gx < 0 or gy < 0:
         return float("nan")
-    score = np.asarray(Image.fromarray(np.asarray(heatmap, np.float32)).resize((W, H), Image.NEAREST))
+    score = np.asarray(Image.fromarray(np.asarray(heatmap, np.float32)).resize((W, H), Image.Resampling.NEAREST))
     pos = score[min(int(gy * H), H - 1), min(int(gx * W), W - 1)]
     below, ties = int(np.count_nonzero(score < pos)), int(np.count_nonzero(score == pos)) - 1
     return (below + 0.5 * ties) / (W * H - 1)
@@ -96,12 +96,12 @@ def _score(net, chunk: list[dict[str, Any]], device: str, per: dict[str, dict[st
     with torch.inference_mode():  # GFIE's g, then ours, through one GFM pass of 2 x len(chunk)
         gs = torch.cat([net.egd_module(x["head"]), g_ours])
         heat = net.heatmap(*(torch.cat([x[k], x[k]]) for k in ("scene", "head_loc", "matrix_t")), gs).cpu().numpy()
-    gs = gs.cpu().numpy()
+    g_np = gs.cpu().numpy()
     for i, f in enumerate(chunk):
         gt_dir = normalize(f["target_3d"] - f["eye"])
         H, W = f["depth"].shape
         for m, j in (("gfie", i), ("ours_gfm", len(chunk) + i)):
-            p = gaze_point_3d(f["depth"], heat[j], gs[j], f["eye"], f["K"])
+            p = gaze_point_3d(f["depth"], heat[j], g_np[j], f["eye"], f["K"])
             per[m]["auc"].append(heatmap_auc(heat[j], f["target_2d"], (W, H)))
             per[m]["l2"].append(float(np.linalg.norm(p.target_2d - f["target_2d"])))
             per[m]["dist3d"].append(float(np.linalg.norm(p.point - f["target_3d"])))

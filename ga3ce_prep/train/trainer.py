@@ -330,8 +330,8 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
     if resume and last_path.exists():
         ckpt = load_checkpoint(last_path)
         problems = check_checkpoint(ckpt, last_path, fingerprint, cfg, force=force)
-        for p in problems:
-            log.warning("resuming despite a mismatch (--force): %s", p)
+        for problem in problems:
+            log.warning("resuming despite a mismatch (--force): %s", problem)
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         history = list(ckpt["history"])
