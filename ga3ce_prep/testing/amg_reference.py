@@ -57,7 +57,10 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
     iou_thresh = np.float32(options.pred_iou_thresh)
     batches, cands = [], []
     for b0 in range(0, len(points), options.points_per_batch):
-        logits, iou, point_of = [], [], []                 # the batch's candidates that pass the IoU filter
+        # the batch's candidates that pass the IoU filter
+        logit_parts: list[np.ndarray] = []
+        iou_parts: list[np.ndarray] = []
+        point_parts: list[np.ndarray] = []
         for i in range(b0, min(b0 + options.points_per_batch, len(points))):
             with timer("decoder"):                         # one call per point: masks (1, M, H, W), IoUs (1, M)
                 masks, q = decoder(emb, *single_point_prompts(coords[i:i + 1]), (h, w),
@@ -67,11 +70,11 @@ def reference_generate(encoder: ImageEncoder, decoder: OfficialDecoder, rgb: np.
                 cands.append(np.stack([np.full(tokens.size, i), tokens, q], axis=1))
                 # Filter by predicted IoU
                 keep = q > iou_thresh if options.pred_iou_thresh > 0 else np.ones(tokens.size, bool)
-                logits.append(masks[0, tokens[keep]])
-                iou.append(q[keep])
-                point_of.append(np.full(int(keep.sum()), i))
+                logit_parts.append(masks[0, tokens[keep]])
+                iou_parts.append(q[keep])
+                point_parts.append(np.full(int(keep.sum()), i))
         with timer("filters"):
-            logits, iou, point_of = np.concatenate(logits), np.concatenate(iou), np.concatenate(point_of)
+            logits, iou, point_of = np.concatenate(logit_parts), np.concatenate(iou_parts), np.concatenate(point_parts)
             # Calculate the stability score, filter by it
             stab = amg.stability_score(logits, options.stability_score_offset)
             keep = stab >= np.float32(options.stability_score_thresh) if options.stability_score_thresh > 0 \

@@ -36,7 +36,7 @@ def _wait_for(check, what: str, procs: list[subprocess.Popen], timeout: float) -
     while not check():
         dead = [p for p in procs if p.poll() is not None]
         if dead:
-            raise RuntimeError(f"{what}: {dead[0].args} exited with {dead[0].returncode}")
+            raise RuntimeError(f"{what}: {dead[0].args!r} exited with {dead[0].returncode}")
         if time.monotonic() - t > timeout:
             raise TimeoutError(f"{what}: not ready after {timeout:.0f} s")
         time.sleep(0.2)

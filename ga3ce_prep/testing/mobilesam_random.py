@@ -51,6 +51,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,7 +64,7 @@ STAMP = "verified"
 DECODER_DIGEST = "86cd692af82520da4b3e2f2284a2234db89f593061dea8fa0ec46a151f4a0405"
 # The encoder's image_embeddings[0, ::64, ::32, ::32] (4 x 2 x 2) on `fingerprint_input()`, and
 # the mean of |e| and of e^2 over the whole output.
-ENCODER_FINGERPRINT = {
+ENCODER_FINGERPRINT: dict[str, Any] = {
     "samples": [-1.8475067615509033, -2.2048611640930176, 1.0399658679962158, -0.47132137417793274,
                 0.5610381364822388, -0.002746355254203081, 0.1810426115989685, 0.8652708530426025,
                 3.6112923622131348, 1.304365634918213, 1.4991906881332397, -1.6895084381103516,

@@ -10,6 +10,7 @@ NMS of `amg.box_nms` (torchvision.ops.nms's order and ties) per category. Where 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -46,11 +47,12 @@ def _stand_in_torchvision() -> None:
     def box_area(boxes):
         return (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
 
-    generator = importlib.import_module("mobile_sam.automatic_mask_generator")
-    transforms = importlib.import_module("mobile_sam.utils.transforms")
+    # MobileSAM's modules (no type information), whose torchvision helpers are replaced
+    generator: Any = importlib.import_module("mobile_sam.automatic_mask_generator")
+    transforms: Any = importlib.import_module("mobile_sam.utils.transforms")
     generator.batched_nms, generator.box_area = batched_nms, box_area
     transforms.to_pil_image = Image.fromarray
-    transforms.resize = lambda image, size: image.resize((size[1], size[0]), Image.BILINEAR)
+    transforms.resize = lambda image, size: image.resize((size[1], size[0]), Image.Resampling.BILINEAR)
 
 
 def official_generator(sam, options: amg.AmgOptions):

@@ -14,6 +14,7 @@ And stand-ins for the authors' networks that scripts/export_*.py import (`Consta
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -50,6 +51,9 @@ def linear_depth_model(path: Path, outputs: dict[str, tuple[float, float]], *, l
 class Constant(torch.nn.Module):
     """A crop model returning fixed joints (J, 3) mm in the crop camera; the inputs enter with
     weight 0 (so an ONNX export keeps them)."""
+
+    if TYPE_CHECKING:  # not at run time: TorchScript cannot read a string annotation
+        joints: torch.Tensor  # a buffer
 
     def __init__(self, joints_mm: np.ndarray):
         super().__init__()
@@ -101,6 +105,7 @@ def random_gfie_net(seed: int = 0):
     net = GFIENet()
     for m in net.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
+            assert m.running_mean is not None and m.running_var is not None  # GFIE's BatchNorms track them
             m.running_mean.uniform_(-0.1, 0.1)
             m.running_var.uniform_(0.5, 1.5)
             m.weight.data.uniform_(0.5, 1.5)

@@ -17,6 +17,8 @@ and benchmarks.
 """
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 import onnx
@@ -74,9 +76,10 @@ def scripted_decoder(labels: np.ndarray, batch_dynamic: bool = False, drop_input
     lab = low_res_labels(labels)
     g = GraphBuilder("scripted_decoder")
     batch = "batch" if batch_dynamic else 1
-    specs = [("image_embeddings", [1, 256, 64, 64]), ("point_coords", [batch, "num_points", 2]),
-             ("point_labels", [batch, "num_points"]), ("mask_input", [1, 1, mask_input_size, mask_input_size]),
-             ("has_mask_input", [1]), ("orig_im_size", [2])]
+    specs: list[tuple[str, list[Any]]] = [
+        ("image_embeddings", [1, 256, 64, 64]), ("point_coords", [batch, "num_points", 2]),
+        ("point_labels", [batch, "num_points"]), ("mask_input", [1, 1, mask_input_size, mask_input_size]),
+        ("has_mask_input", [1]), ("orig_im_size", [2])]
     ins = {name: g.input(name, shape) for name, shape in specs if name != drop_input}
     coords = ins["point_coords"]
     first = g.reshape(g.slice(coords, [0], [1], [1]), [-1, 2])                     # (B, 2) first point
