@@ -33,7 +33,7 @@ demo: setup
 test-models: setup
 	$(PY) -m ga3ce_prep.testing.mobilesam_random
 
-## make lint: ruff over the whole repository, then mypy over the modules [tool.mypy] lists (both
+## make lint: ruff over the whole repository, then mypy over the package ga3ce_prep/ (both
 ## configured in pyproject.toml).
 lint: setup
 	$(VENV)/bin/ruff check .
