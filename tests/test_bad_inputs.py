@@ -3,7 +3,6 @@ world: wrong units and types are refused (dataset-wide faults before any work, o
 failure record), and every refusal is one `error:` line naming the file, the field and the fix,
 with nothing half-written left behind (docs/datasets.md, "What is checked")."""
 import csv
-import json
 import os
 import pickle
 import shutil
@@ -25,7 +24,7 @@ from ga3ce_prep.pipeline import run_pipeline
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic import generate
 from ga3ce_prep.synthetic.truth import TruthReader
-from ga3ce_prep.testing.worlds import SMALL, SMALL_WORLD
+from ga3ce_prep.testing.worlds import SMALL, SMALL_WORLD, as_folder, truth_file
 
 RUN = [*SMALL, "run.shard_size=12"]
 GAFA = ["dataset.format=gafa", "stages.depth.backend=oracle", "stages.depth.params={truth: '{data}/truth.h5'}"]
@@ -95,16 +94,6 @@ def _bomb(path: Path, side: int) -> None:
                      + chunk(b"IEND", b""))
 
 
-def _truth_file(world: Path, out: Path, name: str, scale: float = 1.0, ids=None) -> Path:
-    """The world's truth pose ("pose") or gaze ("view") in the precomputed layout, times `scale`;
-    `ids` maps the world's frame ids to the dataset's."""
-    t = TruthReader(world / "truth.h5")
-    values = t.array("pose" if name == "pose" else "gaze").astype(np.float32) * np.float32(scale)
-    fids = [ids(f) if ids else f for f in t.frame_ids]
-    np.savez(out, frame_id=np.array(fids), **{name: values})
-    return out
-
-
 @pytest.fixture(scope="module")
 def reference(synth_world, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref") / "ref.zarr"
@@ -161,7 +150,7 @@ def test_8bit_depth_png_is_refused(cad_world, tmp_path, ga3ce):
 
 
 def test_pose_file_in_millimetres_is_refused_then_read_with_its_units(synth_world, tmp_path, ga3ce):
-    pose_mm = _truth_file(synth_world, tmp_path / "pose_mm.npz", "pose", 1000.0)
+    pose_mm = truth_file(synth_world, tmp_path / "pose_mm.npz", "pose", 1000.0)
     pose = [f"stages.pose={{backend: precomputed, params: {{file: '{pose_mm}'}}}}"]
     refused(_run(ga3ce, synth_world, tmp_path / "s.zarr", *pose), tmp_path / "s.zarr",
             "pose of frame test/scene1/0000 in", "pose_mm.npz", "median person size", "(read as units m)",
@@ -266,7 +255,7 @@ def test_one_frames_faults_are_its_failure_records_and_the_others_are_intact(syn
 
 
 def test_non_finite_poses_are_failure_records_not_stored_values(synth_world, tmp_path, ga3ce):
-    path = _truth_file(synth_world, tmp_path / "pose.npz", "pose")
+    path = truth_file(synth_world, tmp_path / "pose.npz", "pose")
     z = dict(np.load(path))
     row = {fid: i for i, fid in enumerate(z["frame_id"])}
     z["pose"][row["train/scene1/0000"]] = np.nan                          # no joint at all
@@ -288,31 +277,8 @@ def test_non_finite_poses_are_failure_records_not_stored_values(synth_world, tmp
     assert np.isnan(s.frames["pose"][i, 4]).all() and np.isfinite(np.delete(s.frames["pose"][i], 4, 0)).all()
 
 
-def _folder(world: Path, root: Path) -> Path:
-    """The world as a `folder` dataset (frames named <split>_<scene>_<frame>), with precomputed pose
-    and view files keyed by those names."""
-
-    def name(fid):
-        return fid.replace("/", "_")
-
-    (root / "rgb").mkdir(parents=True)
-    (root / "depth").mkdir()
-    fx, fy, cx, cy = np.load(world / "CameraKinect.npy")
-    (root / "intrinsics.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}))
-    rows = []
-    for ref in open_dataset("gfie", world).frames():
-        shutil.copy(ref.image_path, root / "rgb" / f"{name(ref.id)}.jpg")
-        shutil.copy(ref.depth_path, root / "depth" / f"{name(ref.id)}.npy")
-        rows.append([name(ref.id), *ref.head_box.tolist(), ref.split])
-    with open(root / "heads.csv", "w", newline="") as f:
-        csv.writer(f).writerows([["name", "x1", "y1", "x2", "y2", "split"], *rows])
-    _truth_file(world, root / "pose.npz", "pose", ids=name)
-    _truth_file(world, root / "view.npz", "view", ids=name)
-    return root
-
-
 def test_a_missing_depth_file_is_named_not_blamed_on_a_depth_estimator(synth_world, tmp_path, ga3ce):
-    data = _folder(synth_world, tmp_path / "rec")
+    data = as_folder(synth_world, tmp_path / "rec")
     (data / "depth" / "train_scene1_0002.npy").unlink()
     code, out, err = _run(ga3ce, data, tmp_path / "s.zarr", "stages.pose.params.file='{data}/pose.npz'",
                           "stages.view.params.file='{data}/view.npz'", pipeline="folder")

@@ -1,4 +1,15 @@
-"""The small synthetic worlds the tests share, and the pipeline overrides that fit them."""
+"""The small synthetic worlds the tests share, the pipeline overrides that fit them, and a world
+re-written in the precomputed and `folder` layouts (docs/datasets.md, docs/pipeline.md)."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
 # 160x120 frames keep the tests fast: 3 scenes x 4 frames.
 SMALL_WORLD = dict(scenes=3, frames_per_scene=4, seed=5, width=160)
 # 640x480 (the benchmark's resolution), where heads span 15-40 px (at 160x120 a head is 5-8 px
@@ -11,3 +22,48 @@ GAFA_GAP = ("library/1029_2/Camera2_0", 1)
 # the bundled pipelines with the geometric segmenter's grid scaled to 160x120 frames
 SMALL = ["stages.objects.params.stride=1"]
 
+
+
+def truth_file(world: Path, out: Path, name: str, scale: float = 1.0,
+               ids: Callable[[str], str] | None = None) -> Path:
+    """The world's truth pose (name "pose": (N, J, 3) m) or gaze (name "view": (N, 3)) as a
+    precomputed file `out` (.npz: frame_id + the array), times `scale`; `ids` maps the world's
+    frame ids to the dataset's. Returns `out`."""
+    from ..synthetic.truth import TruthReader
+
+    t = TruthReader(world / "truth.h5")
+    values = t.array("pose" if name == "pose" else "gaze").astype(np.float32) * np.float32(scale)
+    fids = [ids(f) if ids else f for f in t.frame_ids]
+    if name == "pose":
+        np.savez(out, frame_id=np.array(fids), pose=values)
+    else:
+        np.savez(out, frame_id=np.array(fids), view=values)
+    return out
+
+
+def folder_name(frame_id: str) -> str:
+    """A GFIE-format world's frame id as a `folder` recording's frame name (<split>_<scene>_<frame>)."""
+    return frame_id.replace("/", "_")
+
+
+def as_folder(world: Path, root: Path) -> Path:
+    """The GFIE-format world `world` as a `folder` recording under `root` (rgb/, depth/ .npy,
+    intrinsics.json, heads.csv with a split column), with its truth pose and view as `pose.npz` and
+    `view.npz` keyed by the recording's frame names. Returns `root`."""
+    from ..datasets import open_dataset
+
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    fx, fy, cx, cy = np.load(world / "CameraKinect.npy")
+    (root / "intrinsics.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}))
+    rows = []
+    for ref in open_dataset("gfie", world).frames():
+        assert ref.depth_path is not None, ref.id               # a GFIE-format world has depth files
+        shutil.copy(ref.image_path, root / "rgb" / f"{folder_name(ref.id)}.jpg")
+        shutil.copy(ref.depth_path, root / "depth" / f"{folder_name(ref.id)}.npy")
+        rows.append([folder_name(ref.id), *ref.head_box.tolist(), ref.split])
+    with open(root / "heads.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["name", "x1", "y1", "x2", "y2", "split"], *rows])
+    truth_file(world, root / "pose.npz", "pose", ids=folder_name)
+    truth_file(world, root / "view.npz", "view", ids=folder_name)
+    return root
