@@ -7,14 +7,17 @@ import shlex
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ModelFileError
+from ga3ce_prep.files import file_sha256
 from ga3ce_prep.model_folder import MODEL_FILES, PAPER_PIPELINES, contract, stage_files
 from ga3ce_prep.models_cli import readers, table_markdown
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
+from ga3ce_prep.store import open_store
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch 2.13 on TorchScript
 REPO = Path(__file__).resolve().parents[1]
@@ -93,7 +96,8 @@ def _follow(command: str, stand_ins: dict, monkeypatch) -> None:
 
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::UserWarning", "ignore::torch.jit.TracerWarning")  # the exporters' notes
-def test_following_the_recipes_with_stand_in_models_gives_a_folder_models_check_accepts(tmp_path, monkeypatch):
+def test_following_the_recipes_with_stand_in_models_gives_a_folder_models_check_accepts(tmp_path, monkeypatch,
+                                                                                        synth_world):
     import torch
 
     from ga3ce_prep.skeleton import JOINT_NAMES
@@ -125,6 +129,14 @@ def test_following_the_recipes_with_stand_in_models_gives_a_folder_models_check_
         assert listed and all(row[0] == "verified" for row in listed), res.output
         assert {row[1] for row in listed} == {f for f, ps in readers().items() if name in ps}
     load_pipeline("gafa", tmp_path, models="models")  # the run's own check before any work accepts it too
+    # and `run` itself, on two frames of the tests' GFIE-format world
+    args = ["run", "-p", "gfie", "-d", str(synth_world), "-o", "s.zarr", "--models", "models", "--limit", "2", "-q",
+            "--set", "stages.objects.params.points_per_side=4"]
+    res = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    store = open_store("s.zarr")
+    assert len(store) == 2 and np.isfinite(store.frames["pose"]).all() and np.isfinite(store.frames["view"]).all()
+    assert list(store.attrs["stages"]["view"]["models"].values()) == [file_sha256("models/gfiemodel.pt.tar")]
 
 
 def test_models_check_and_run_name_each_missing_file_and_its_command(tmp_path, monkeypatch):
