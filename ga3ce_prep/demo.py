@@ -15,6 +15,7 @@ trains again if the run folder is missing.
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -43,7 +44,7 @@ def _world(data: Path, params: dict[str, Any]) -> None:
         return
     if data.exists() and any(data.iterdir()):
         raise Ga3ceError(f"{data} exists with other contents; remove it or pass another --out")
-    generate(**params, out=data, width=640)
+    generate(**params, out=data, width=640, workers=os.cpu_count() or 1)   # the same files with any count
     stamp.write_text(json.dumps(params))
 
 

@@ -110,6 +110,17 @@ class FormatWriter:
         self.n_recordings = n_scenes * sessions_per_room
         self.out.mkdir(parents=True, exist_ok=True)
 
+    def begin(self) -> None:
+        """Write the files that no frame changes (the intrinsics); once per dataset, before any frame."""
+
+    def take(self) -> Any:
+        """What write() kept for close() since the last take (annotation rows), handed over to
+        absorb() of the writer that closes: recordings may be written by writers in other processes."""
+        return None
+
+    def absorb(self, kept: Any) -> None:
+        """Add what another writer's take() gave, in recording order."""
+
     def scene_names(self, i: int, n_cameras: int) -> tuple[str, str, list[str]]:
         """(split, scene name, camera names) of recording i."""
         raise NotImplementedError
@@ -144,8 +155,18 @@ class GFIEWriter(FormatWriter):
             counts[s] = counts.get(s, 0) + 1
             self.number.append(counts[s])
         self.rows: dict[str, list[list[str]]] = {f: [] for f in gfie.SPLIT_FOLDERS}
+
+    def begin(self):
         K = self.K
         np.save(self.out / "CameraKinect.npy", np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64))
+
+    def take(self):
+        kept, self.rows = self.rows, {f: [] for f in gfie.SPLIT_FOLDERS}
+        return kept
+
+    def absorb(self, kept):
+        for folder, rows in kept.items():
+            self.rows[folder] += rows
 
     def scene_names(self, i, n_cameras):
         folder = self.FOLDER[self.splits[i]]
@@ -187,8 +208,17 @@ class CAD120Writer(FormatWriter):
     def __init__(self, *a: Any, **kw: Any) -> None:
         super().__init__(*a, **kw)
         self.rows: list[list[str]] = []
+
+    def begin(self):
         K = self.K
         np.save(self.out / "CameraKinect.npy", np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64))
+
+    def take(self):
+        kept, self.rows = self.rows, []
+        return kept
+
+    def absorb(self, kept):
+        self.rows += kept
 
     @staticmethod
     def dataset_id(i: int) -> str:
@@ -277,7 +307,6 @@ class GAFAWriter(FormatWriter):
 
     def __init__(self, *a: Any, **kw: Any) -> None:
         super().__init__(*a, **kw)
-        np.savez(self.out / "intrinsics.npz", cam_mat=np.asarray(self.K, np.float64), dist_coeffs=np.zeros((1, 12)))
         self.acc: dict[int, dict[str, list]] = {}
         R = self.sessions_per_room
         if R == 1:
@@ -293,6 +322,9 @@ class GAFAWriter(FormatWriter):
         for s in names:
             self.repeats.append(seen.get(s, 0))
             seen[s] = self.repeats[-1] + 1
+
+    def begin(self):
+        np.savez(self.out / "intrinsics.npz", cam_mat=np.asarray(self.K, np.float64), dist_coeffs=np.zeros((1, 12)))
 
     def session(self, i: int) -> str:
         return self.sessions[i]
