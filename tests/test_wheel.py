@@ -124,7 +124,8 @@ for run in bundled_runs(root / "inputs"):
     out = root / f"{run.name}.zarr"
     cli.main(run.args(out), prog_name="ga3ce-prep", standalone_mode=False)
     s = open_store(out)
-    print("ROW", json.dumps([run.name, run.frames, len(s), len(set(s.failures["frame_id"].tolist())), s.attrs["pipeline"]["file"]]))
+    failed = len(set(s.failures["frame_id"].tolist()))
+    print("ROW", json.dumps([run.name, run.frames, len(s), failed, s.attrs["pipeline"]["file"]]))
 """
 
 
