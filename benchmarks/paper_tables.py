@@ -136,7 +136,9 @@ def format_world(label: str, summary: dict) -> str:
               help="Comma-separated TrainConfig.batching values, each a set of runs (mixed, sorted, shuffled).")
 @click.option("--lr", default=None, type=float,
               help="Peak learning rate (default: TrainConfig's); its runs get their own folder.")
-@click.option("--epochs", default=20, show_default=True)
+@click.option("--epochs", default=20, show_default=True,
+              help="Training epochs; other than 20, the runs go to runs-<batching>[-lr<lr>]-e<epochs> (a longer "
+                   "schedule gives a small world more optimiser steps).")
 @click.option("--no-transfer", is_flag=True, help="--phase report: skip Table 2 on the transfer world.")
 def main(out: str, phase: str, worlds: str | None, rows_arg: str, batchings: str, lr: float | None, epochs: int,
          no_transfer: bool) -> None:
@@ -157,12 +159,14 @@ def main(out: str, phase: str, worlds: str | None, rows_arg: str, batchings: str
         for batching in batchings.split(","):
             base = TrainConfig(store=str(store), epochs=epochs, batching=batching, progress=False,
                                model=ModelConfig.for_method("ga3ce"), **({"lr": lr} if lr else {}))
-            runs = root / (f"runs-{batching}" + (f"-lr{lr:g}" if lr else ""))
+            recipe = (f"-lr{lr:g}" if lr else "") + (f"-e{epochs}" if epochs != 20 else "")   # the default's: none
+            runs = root / f"runs-{batching}{recipe}"
             with cpu_lock():
                 summary = ablate(base, runs, rows=rows, seeds=list(SEEDS), split=split)
             label = f"{name} ({world.rooms} rooms x {world.sessions} sessions x {world.frames} frames, seed "\
-                    f"{world.seed}), batching {batching}" + (f", lr {lr:g}" if lr else "")
-            entry = {"world": dataclasses.asdict(world), "batching": batching, "lr": base.lr,
+                    f"{world.seed}), batching {batching}" + (f", lr {lr:g}" if lr else "") + \
+                    (f", {epochs} epochs" if epochs != 20 else "")
+            entry = {"world": dataclasses.asdict(world), "batching": batching, "lr": base.lr, "epochs": epochs,
                      "summary": {k: v for k, v in summary.items() if k not in ("table", "png")}}
             if transfer is not None:
                 entry["transfer"] = transfer_table(transfer, runs, [r for r in TRANSFER_ROWS if r in rows])
@@ -174,7 +178,7 @@ def main(out: str, phase: str, worlds: str | None, rows_arg: str, batchings: str
             text = format_world(label, summary) + label_t
             click.echo(text)
             texts.append(text)
-            report[f"{name}/{batching}" + (f"/lr{lr:g}" if lr else "")] = entry
+            report[f"{name}/{batching}" + recipe.replace("-", "/")] = entry
     Path(out).mkdir(parents=True, exist_ok=True)
     path = Path(out) / f"paper_tables_{phase}.json"
     old = json.loads(path.read_text()) if path.exists() else {}
