@@ -74,6 +74,6 @@ def bundled_runs(root: Path) -> list[BundledRun]:
         "folder": (folder, [*SMALL, *_precomputed(folder / "pose.npz", folder / "view.npz")]),
         "folder-real": (folder, SMALL),
     }
-    # GAFA's view needs a 7-frame window: of a camera sequence's first 10 frames, the middle 4 have one
+    # GAFA's view needs a 7-frame window: 4 frames have none, 10 of a camera sequence leave some that do
     return [BundledRun(name, inputs[name][0], models, inputs[name][1], 10 if name == "gafa" else 4)
             for name in pipeline_names()]
