@@ -159,8 +159,8 @@ def main(out: str, phase: str, worlds: str | None, rows_arg: str, batchings: str
         for batching in batchings.split(","):
             base = TrainConfig(store=str(store), epochs=epochs, batching=batching, progress=False,
                                model=ModelConfig.for_method("ga3ce"), **({"lr": lr} if lr else {}))
-            recipe = (f"-lr{lr:g}" if lr else "") + (f"-e{epochs}" if epochs != 20 else "")   # the default's: none
-            runs = root / f"runs-{batching}{recipe}"
+            recipe = ([f"lr{lr:g}"] if lr else []) + ([f"e{epochs}"] if epochs != 20 else [])   # the default's: none
+            runs = root / "-".join([f"runs-{batching}", *recipe])
             with cpu_lock():
                 summary = ablate(base, runs, rows=rows, seeds=list(SEEDS), split=split)
             label = f"{name} ({world.rooms} rooms x {world.sessions} sessions x {world.frames} frames, seed "\
@@ -178,7 +178,7 @@ def main(out: str, phase: str, worlds: str | None, rows_arg: str, batchings: str
             text = format_world(label, summary) + label_t
             click.echo(text)
             texts.append(text)
-            report[f"{name}/{batching}" + recipe.replace("-", "/")] = entry
+            report["/".join([name, batching, *recipe])] = entry
     Path(out).mkdir(parents=True, exist_ok=True)
     path = Path(out) / f"paper_tables_{phase}.json"
     old = json.loads(path.read_text()) if path.exists() else {}

@@ -157,8 +157,8 @@ def generate(fmt: str, out: str | Path, scenes: int, frames_per_scene: int, seed
     `config.preset_names()` (its format must be `fmt`; its seed offset is added to `seed`; a
     `config` file applies on top of it). `workers` > 1 renders rooms in that many spawned processes
     (the same bytes as with one; a script that calls this must do so under `if __name__ ==
-    "__main__":`, since spawned processes import it). Returns the frames written and the time per step of the
-    work (summed over the processes) and the wall time."""
+    "__main__":`, since spawned processes import it). Returns the frames written, the time per step
+    of the work (summed over the processes) and the wall time."""
     if sessions_per_room < 1:
         raise ConfigError(f"sessions_per_room must be at least 1, got {sessions_per_room}")
     if preset is not None:

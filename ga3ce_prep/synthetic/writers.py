@@ -93,6 +93,11 @@ def _imwrite(path: Path, rgb: np.ndarray, params: list[int]) -> None:
     path.write_bytes(buf.tobytes())
 
 
+def _save_camera_kinect(out: Path, K: np.ndarray) -> None:
+    """GFIE's and CAD-120's intrinsics file: CameraKinect.npy, [fx, fy, cx, cy] float64."""
+    np.save(out / "CameraKinect.npy", np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64))
+
+
 def _f(x: float, nd: int) -> str:
     return f"{float(x):.{nd}f}"
 
@@ -157,8 +162,7 @@ class GFIEWriter(FormatWriter):
         self.rows: dict[str, list[list[str]]] = {f: [] for f in gfie.SPLIT_FOLDERS}
 
     def begin(self):
-        K = self.K
-        np.save(self.out / "CameraKinect.npy", np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64))
+        _save_camera_kinect(self.out, self.K)
 
     def take(self):
         kept, self.rows = self.rows, {f: [] for f in gfie.SPLIT_FOLDERS}
@@ -210,8 +214,7 @@ class CAD120Writer(FormatWriter):
         self.rows: list[list[str]] = []
 
     def begin(self):
-        K = self.K
-        np.save(self.out / "CameraKinect.npy", np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64))
+        _save_camera_kinect(self.out, self.K)
 
     def take(self):
         kept, self.rows = self.rows, []
