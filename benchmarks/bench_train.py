@@ -3,7 +3,8 @@
 Measures, on a toy store with 10-60 objects per frame (ga3ce_prep/testing/toy_store.py):
   - training samples/s of the trainer's own step (forward, arccos loss, backward, clip, AdamW) at
     the paper's sizes, batch 32, with objects padded to a fixed 168 (the paper's GFIE padding),
-    padded per batch (random batches), and padded per batch with batches grouped by object count
+    padded per batch (random batches), the same batches run as 4 micro-batches of similar count
+    (`--micro-batches 4`: the same step), and padded per batch with batches grouped by object count
     ("mixed": 4 count groups, the default; "sorted": by count, a room or two a batch), with the mean
     number of scenes in a batch;
     each in a fresh subprocess, reporting its peak resident memory (and the increase over the
@@ -32,6 +33,7 @@ from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
 MODES = {"fixed168": dict(n_max=168, batching="shuffled"), "per_batch": dict(n_max=None, batching="shuffled"),
+         "per_batch_micro4": dict(n_max=None, batching="shuffled", parts=4),
          "mixed": dict(n_max=None, batching="mixed"), "sorted": dict(n_max=None, batching="sorted")}
 
 
@@ -68,17 +70,19 @@ def one_mode(store: str, mode: str, steps: int, warmup: int, threads: int, batch
     batches = BucketBatchSampler(ds.obj_count, batch, seed=0, batching=opts["batching"]).batches()
     rooms = float(np.mean([len(np.unique(ds.scene[b])) for b in batches]))
     rss0 = _rss_mb()
-    slots = 0
+    slots = 0.0
+    parts = opts.get("parts", 1)
     for i in range(warmup):
         b = ds.batch(batches[i], opts["n_max"])
-        train_step(model, opt, b, b.view, 1e-4, 0.1)
+        train_step(model, opt, b, b.view, 1e-4, 0.1, parts=parts)
     t0 = time.perf_counter()
     n = 0
     for i in range(warmup, warmup + steps):
         b = ds.batch(batches[i % len(batches)], opts["n_max"])
-        train_step(model, opt, b, b.view, 1e-4, 0.1)
+        train_step(model, opt, b, b.view, 1e-4, 0.1, parts=parts)
         n += len(b)
-        slots += b.mask.shape[1]
+        slots += (b.mask.shape[1] if parts == 1 else   # padded slots per frame, over the parts
+                  sum(len(p) * p.mask.shape[1] for p, _ in b.split_by_count(parts)) / len(b))
     dt = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"mode": mode, "samples_per_s": n / dt, "steps": steps, "batch": batch, "threads": threads,

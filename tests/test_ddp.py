@@ -32,13 +32,15 @@ def _history(run):
         return list(csv.DictReader(f))
 
 
-@pytest.mark.parametrize("method", ["ga3ce", "ours"])
-def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path, method):
+# micro 2: the two ranks run their halves as 2 micro-batches each (all-reduced once, after the
+# second), the one process its whole batches
+@pytest.mark.parametrize("method, micro", [("ga3ce", 1), ("ours", 1), ("ga3ce", 2)])
+def test_two_processes_follow_the_one_process_loss_curve(store, tmp_path, method, micro):
     one = train(TrainConfig(store=str(store), out=str(tmp_path / "one"), progress=False,
                             model=ModelConfig.for_method(method, **SMALL), **RECIPE))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
            "-m", "ga3ce_prep.cli", "train", "--store", str(store), "--out", str(tmp_path / "two"), "--no-progress",
-           "--model", method]
+           "--model", method, "--micro-batches", str(micro)]
     for k, v in RECIPE.items():
         cmd += [f"--{k.replace('_', '-')}", str(v)]
     for k, v in SMALL.items():

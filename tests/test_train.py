@@ -85,6 +85,34 @@ def test_train_step_adds_the_first_pass_loss_with_its_weight(store, w):
         torch.testing.assert_close(p.detach(), expect, atol=1e-6, rtol=1e-5, msg=name)
 
 
+@pytest.mark.parametrize("output", ["regress", "pointer"])
+def test_micro_batches_make_the_same_step_with_less_padding(store, output):
+    from ga3ce_prep.store import open_store
+    from ga3ce_prep.train.dataset import ContextDataset
+    from ga3ce_prep.train.trainer import augment_objects, train_step
+    b = ContextDataset(open_store(store), "train").batch(list(range(24)))
+    b = augment_objects(b, torch.Generator().manual_seed(0), 0.3, 0.1, 0.0)   # holes, and frames with none
+    pieces = b.split_by_count(4)
+    assert sorted(torch.cat([rows for _, rows in pieces]).tolist()) == list(range(24))
+    assert [int(p.mask.sum()) for p, _ in pieces] == [int(b.mask[rows].sum()) for _, rows in pieces]
+    for p, rows in pieces:                                  # the same frames, objects in the same slots
+        torch.testing.assert_close(p.objects, b.objects[rows][:, :p.mask.shape[1]])
+        assert not b.mask[rows][:, p.mask.shape[1]:].any()
+    assert sum(len(p) * p.mask.shape[1] for p, _ in pieces) < 0.8 * len(b) * b.mask.shape[1]
+    steps = []
+    for parts in (1, 4):
+        torch.manual_seed(0)
+        model = GA3CE(ModelConfig(output=output, dropout=0.0, **SMALL))
+        init = [q.detach().clone() for q in model.parameters()]
+        sgd = torch.optim.SGD(model.parameters(), lr=1.0)
+        loss = train_step(model, sgd, b, b.view, lr=1.0, grad_clip=1e9, parts=parts)
+        steps.append((loss, [q.detach().clone() for q in model.parameters()]))
+    assert not all(torch.equal(a, q) for a, q in zip(init, steps[1][1]))   # the step moved the weights
+    torch.testing.assert_close(steps[0][0], steps[1][0])
+    for one, four in zip(steps[0][1], steps[1][1]):
+        torch.testing.assert_close(one, four, atol=1e-6, rtol=1e-5)
+
+
 def test_object_augmentation_off_is_the_recipe_without_it_and_on_changes_the_weights(store, tmp_path, monkeypatch):
     a = train(_cfg(store, tmp_path / "a"))                 # defaults: object_dropout 0, object_jitter 0
     with monkeypatch.context() as m:                       # the trainer without the object augmentation step

@@ -18,8 +18,8 @@ from ..errors import Ga3ceError
 from ..model import GA3CE, ModelConfig
 
 FORMAT = "ga3ce-prep/checkpoint/1"
-# training options that do not change the result: allowed to differ on --resume
-RESULT_NEUTRAL = frozenset({"store", "out", "device", "threads", "progress"})
+# training options that change the result at most by rounding: allowed to differ on --resume
+RESULT_NEUTRAL = frozenset({"store", "out", "device", "threads", "progress", "micro_batches"})
 
 
 class CheckpointError(Ga3ceError):

@@ -61,6 +61,19 @@ class Batch:
     def __len__(self) -> int:
         return len(self.index)
 
+    def split_by_count(self, parts: int) -> list[tuple[Batch, torch.Tensor]]:
+        """The batch as up to `parts` batches of frames of similar object count, each keeping only
+        the object slots its frames use (every real object kept), with the rows (int64) each took."""
+        S = self.mask.shape[1]
+        used = ((self.mask * torch.arange(1, S + 1, device=self.mask.device)).amax(1) if S
+                else torch.zeros(len(self), dtype=torch.int64, device=self.mask.device))
+        out = []
+        for rows in torch.tensor_split(torch.argsort(used, stable=True), min(parts, len(self))):
+            k = int(used[rows].max())
+            sub = {f.name: getattr(self, f.name)[rows] for f in fields(self)}
+            out.append((Batch(**{**sub, "objects": sub["objects"][:, :k], "mask": sub["mask"][:, :k]}), rows))
+        return out
+
 
 def store_fingerprint(store: ContextStore) -> str:
     """SHA-256 over the store's root attributes and every frame and object array: two stores

@@ -14,6 +14,7 @@ same call trains data-parallel (distributed.py): the global batch stays `batch_s
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -89,6 +90,11 @@ class TrainConfig:
         # object count in 4 groups (little padding, many rooms a batch), sorted = by count (least
         # padding, a room or two a batch), shuffled: docs/training.md "Batches"
         "mixed")
+    micro_batches: int = (
+        # run each batch as this many parts of similar object count, each padded to its own largest
+        # count, their gradients summed into one optimiser step: the same step with less padding
+        # (what makes `shuffled` batches cheap; 1 = the whole batch at once)
+        1)
     train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
     val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
     progress: bool = True  # progress bars (else one log line per epoch)
@@ -104,6 +110,8 @@ class TrainConfig:
         if not (0.0 <= self.object_dropout < 1.0 and 0.0 <= self.object_frame_dropout < 1.0) or self.object_jitter < 0:
             raise ConfigError(f"object_dropout and object_frame_dropout must be in [0, 1) and object_jitter >= 0, got "
                               f"{self.object_dropout}, {self.object_frame_dropout} and {self.object_jitter}")
+        if self.micro_batches < 1:
+            raise ConfigError(f"micro_batches must be >= 1, got {self.micro_batches}")
         if self.batching not in BATCHINGS:
             raise ConfigError(f"batching must be one of {', '.join(BATCHINGS)}, got {self.batching!r}")
         if self.device not in ("cpu", "cuda"):
@@ -233,25 +241,34 @@ def augment_objects(b: Batch, generator: torch.Generator, dropout: float, frame_
 
 
 def train_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, b: Batch, view: torch.Tensor, lr: float,
-               grad_clip: float, weight: float = 1.0, first_pass_loss: float = 1.0) -> torch.Tensor:
+               grad_clip: float, weight: float = 1.0, first_pass_loss: float = 1.0, parts: int = 1) -> torch.Tensor:
     """One optimiser step on batch b with view prior `view` (B, 3) (augmented or not): forward,
     arccos loss, backward, gradient clipping at L2 norm grad_clip, AdamW at learning rate lr.
     weight scales the loss for the backward pass (data-parallel: this rank's share of the global
     batch times the world size); the pointer model's first pass g0 adds its arccos loss times
-    first_pass_loss. Returns the batch's mean loss of g (radians,
-    detached, unscaled)."""
-    *firsts, g = model(view, b.pose, b.head_pos, b.objects, b.mask, all_passes=True)
-    loss = angular_loss(g, b.gaze)
-    total = loss
-    for g0 in firsts:
-        total = total + first_pass_loss * angular_loss(g0, b.gaze)
+    first_pass_loss. parts > 1 runs the batch as that many parts of similar object count
+    (`Batch.split_by_count`), each loss weighted by its share of the frames, gradients summed:
+    the same step up to rounding. Returns the batch's mean loss of g (radians, detached, unscaled)."""
     optimizer.zero_grad(set_to_none=True)
-    (total * weight).backward()
+    pieces = b.split_by_count(parts) if parts > 1 else [(b, None)]
+    mean_loss = torch.zeros((), device=view.device)
+    no_sync = getattr(model, "no_sync", None)   # data-parallel: all-reduce once, after the last part
+    for i, (p, rows) in enumerate(pieces):
+        share = len(p) / len(b)
+        with contextlib.nullcontext() if i == len(pieces) - 1 or no_sync is None else no_sync():
+            *firsts, g = model(view if rows is None else view[rows], p.pose, p.head_pos, p.objects, p.mask,
+                               all_passes=True)
+            loss = angular_loss(g, p.gaze)
+            total = loss
+            for g0 in firsts:
+                total = total + first_pass_loss * angular_loss(g0, p.gaze)
+            (total * (weight * share)).backward()
+        mean_loss = mean_loss + loss.detach() * share
     torch.nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], grad_clip)
     for group in optimizer.param_groups:
         group["lr"] = lr
     optimizer.step()
-    return loss.detach()
+    return mean_loss
 
 
 def train(config: TrainConfig, resume: bool = False, force: bool = False,
@@ -365,7 +382,8 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
             take = rows if n_rows else slice(0, 1)  # no rows: one at weight 0 keeps the ranks in step
             lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
             loss = train_step(net, optimizer, b.rows(take), view[take], lr, config.grad_clip,
-                              weight=n_rows * ranks.world / len(idx), first_pass_loss=config.first_pass_loss)
+                              weight=n_rows * ranks.world / len(idx), first_pass_loss=config.first_pass_loss,
+                              parts=config.micro_batches)
             step += 1
             sum_loss += loss.item() * n_rows
             n_seen += len(idx)
