@@ -81,9 +81,11 @@ def one_mode(store: str, mode: str, steps: int, warmup: int, threads: int, batch
         b = ds.batch(batches[i % len(batches)], opts["n_max"])
         train_step(model, opt, b, b.view, 1e-4, 0.1, parts=parts)
         n += len(b)
-        slots += (b.mask.shape[1] if parts == 1 else   # padded slots per frame, over the parts
-                  sum(len(p) * p.mask.shape[1] for p, _ in b.split_by_count(parts)) / len(b))
     dt = time.perf_counter() - t0
+    for i in range(warmup, warmup + steps):   # padded slots per frame, over the parts (untimed)
+        b = ds.batch(batches[i % len(batches)], opts["n_max"])
+        slots += (b.mask.shape[1] if parts == 1 else
+                  sum(len(p) * p.mask.shape[1] for p, _ in b.split_by_count(parts)) / len(b))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"mode": mode, "samples_per_s": n / dt, "steps": steps, "batch": batch, "threads": threads,
             "mean_object_slots": slots / steps, "scenes_per_batch": rooms, "peak_rss_mb": peak, "rss_before_mb": rss0,
