@@ -132,7 +132,7 @@ def format_world(label: str, summary: dict) -> str:
 @click.option("--rows", "rows_arg", default="paper", show_default=True,
               help="Comma-separated ablation rows (ga3ce-prep ablate --rows); `paper` stands for the rows of "
               "Tables 4 and 5.")
-@click.option("--batching", "batchings", default="mixed", show_default=True,
+@click.option("--batching", "batchings", default="shuffled", show_default=True,
               help="Comma-separated TrainConfig.batching values, each a set of runs (mixed, sorted, shuffled).")
 @click.option("--lr", default=None, type=float,
               help="Peak learning rate (default: TrainConfig's); its runs get their own folder.")

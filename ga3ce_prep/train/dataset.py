@@ -203,19 +203,20 @@ class BucketBatchSampler(Sampler[list[int]]):
     """Training batches that keep per-batch object padding small (a DataLoader batch_sampler, or
     iterate it). Seeded by (seed, epoch): call set_epoch(e). `batching`:
 
-    - "mixed" (the default): frames ranked by object count (ties broken at random) and cut into
+    - "shuffled" (the default): plain shuffled batches (padding to nearly the largest count of
+      all; `train_step(parts=)` takes most of that padding back).
+    - "mixed": frames ranked by object count (ties broken at random) and cut into
       `groups` groups of equal size; each group is shuffled and cut into batches, and the batches
       of all groups shuffled. A batch pads to its group's largest count and draws from a 1/groups
       share of the frames, so it mixes many rooms.
     - "sorted": shuffled, cut into windows of `window` batches and sorted by count inside each
       window: the least padding, but a room's frames have nearly the same count, so each batch
       holds frames of one or two rooms.
-    - "shuffled": plain shuffled batches (padding to nearly the largest count of all).
 
-    shuffle=False gives batches in count order (evaluation).
+    shuffle=False gives batches in count order whatever the batching (evaluation).
     """
 
-    def __init__(self, counts: np.ndarray, batch_size: int, seed: int = 0, batching: str = "mixed",
+    def __init__(self, counts: np.ndarray, batch_size: int, seed: int = 0, batching: str = "shuffled",
                  shuffle: bool = True, groups: int = 4, window: int = 64, drop_last: bool = False):
         if batching not in BATCHINGS:
             raise ValueError(f"batching must be one of {BATCHINGS}, got {batching!r}")
@@ -235,7 +236,7 @@ class BucketBatchSampler(Sampler[list[int]]):
         n, bs = len(self.counts), self.batch_size
         rng = np.random.default_rng([self.seed, self.epoch])
         if not self.shuffle:
-            return self._cut(np.argsort(self.counts, kind="stable") if self.batching != "shuffled" else np.arange(n))
+            return self._cut(np.argsort(self.counts, kind="stable"))
         order = rng.permutation(n)
         if self.batching == "mixed":
             ranked = order[np.argsort(self.counts[order], kind="stable")]

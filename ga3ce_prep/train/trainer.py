@@ -86,15 +86,17 @@ class TrainConfig:
         # object slots per frame: None pads to the batch's largest count; N pads to N, keeping the largest masks
         None)
     batching: Literal["mixed", "sorted", "shuffled"] = (
-        # how frames are grouped into batches, the same for every arm of a comparison: mixed = by
-        # object count in 4 groups (little padding, many rooms a batch), sorted = by count (least
-        # padding, a room or two a batch), shuffled: docs/training.md "Batches"
-        "mixed")
+        # how frames are grouped into batches, the same for every arm of a comparison: shuffled =
+        # at random (rooms mixed; cheap with micro_batches), mixed = by object count in 4 groups
+        # (little padding, many rooms a batch), sorted = by count (least padding, a room or two a
+        # batch): docs/training.md "Batches"
+        "shuffled")
     micro_batches: int = (
         # run each batch as this many parts of similar object count, each padded to its own largest
         # count, their gradients summed into one optimiser step: the same step with less padding
-        # (what makes `shuffled` batches cheap; 1 = the whole batch at once)
-        1)
+        # (what makes `shuffled` batches cheap; 1 = the whole batch at once; arms that read no
+        # objects always run whole batches)
+        4)
     train_frames: int | None = None  # train on an evenly spaced subset of this many frames (short runs); unset = all
     val_frames: int | None = None  # validate on an evenly spaced subset of this many frames; unset = all
     progress: bool = True  # progress bars (else one log line per epoch)
@@ -383,7 +385,7 @@ def _train(config: TrainConfig, ranks: Ranks, device: torch.device, resume: bool
             lr = warmup_cosine_lr(step, total_steps, warmup_steps, config.lr)
             loss = train_step(net, optimizer, b.rows(take), view[take], lr, config.grad_clip,
                               weight=n_rows * ranks.world / len(idx), first_pass_loss=config.first_pass_loss,
-                              parts=config.micro_batches)
+                              parts=config.micro_batches if config.model.use_objects else 1)
             step += 1
             sum_loss += loss.item() * n_rows
             n_seen += len(idx)
