@@ -299,7 +299,8 @@ def test_eval_gfm_end_to_end(gfm_store, net, ckpt, synth_world, tmp_path):
         np.testing.assert_allclose(got, np.nanmean(hand, axis=0), rtol=1e-4, atol=1e-4, err_msg=method)
         assert m[method]["n_auc"] == np.isfinite(hand[:, 0]).sum()
     assert 0 <= m["gfie"]["auc"] <= 1 and m["gfie"]["dist3d"] > 0
-    assert abs(m["gfie"]["auc"] - m["ours_gfm"]["auc"]) > 1e-4, m  # another g, other stereo-FoV maps, another heatmap
+    # another g, other stereo-FoV maps, another heatmap (the random net's AUC moves by 1e-5 to 1e-3)
+    assert m["gfie"]["auc"] != m["ours_gfm"]["auc"], m
 
     # a dataset copy that lost one frame's depth: that frame is listed and left out of every column
     data = tmp_path / "copy"
