@@ -4,8 +4,8 @@ Measures, on a toy store with 10-60 objects per frame (ga3ce_prep/testing/toy_st
   - training samples/s of the trainer's own step (forward, arccos loss, backward, clip, AdamW) at
     the paper's sizes, batch 32, with objects padded to a fixed 168 (the paper's GFIE padding),
     padded per batch (random batches), the same batches run as 4 micro-batches of similar count
-    (`--micro-batches 4`: the same step), and padded per batch with batches grouped by object count
-    ("mixed": 4 count groups, the default; "sorted": by count, a room or two a batch), with the mean
+    (`--micro-batches 4`, the trainer's default: the same step), and padded per batch with batches
+    grouped by object count ("mixed": 4 count groups; "sorted": by count, a room or two a batch), with the mean
     number of scenes in a batch;
     each in a fresh subprocess, reporting its peak resident memory (and the increase over the
     process's memory before the first step);
