@@ -66,7 +66,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     """Run synth -> prep -> train -> eval on the embedded synthetic worlds and print the 3D MAE of
     the paper's GA3CE, of ours, of the model without objects, of the v prior and of the
     learning-free baselines, on test sessions of rooms seen in training and on a transfer world of
-    unseen rooms and another camera. 8-11 minutes on 2 CPU cores (a study:
+    unseen rooms and another camera. 9-14 minutes on 2 CPU cores (a study:
     docs/studies/2026-12-05-the-demo-on-a-fresh-clone.md); rerunning reuses every step."""
     from .model import METHODS, ModelConfig, resolve
     from .pipeline import run_pipeline
