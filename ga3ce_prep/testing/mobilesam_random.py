@@ -26,16 +26,24 @@ How they are built (`ensure`, once; `make test-models` runs it and `make test` c
    PyPI's torchvision does not load beside the CPU build of torch. The export never calls it, so
    an empty stand-in serves the `torchvision` modules while they import
    (`mobilesam_code.absent_torchvision`).
-3. `torch.manual_seed(0)`, the `vit_t` model built without a checkpoint, its attention-bias tables
-   drawn from N(0, 0.5) (so the encoder graph exercises them), `eval()`, then `torch.onnx.export`
-   of the encoder and of `SamOnnxModel` (TorchScript exporter, opset 17), and `torch.save` of the
-   model's `state_dict` (after the exports, which it does not change).
+3. The `vit_t` model is built without a checkpoint, and every tensor torch's initialisers draw at
+   random is drawn again from numpy's PCG64 (`random_state`: uniform, with torch's default bounds;
+   TinyViT's attention-bias tables, zero in torch's init, get a standard deviation of 0.5 so the
+   encoder graph exercises them). torch's own draws (`manual_seed`, `normal_`, `kaiming_uniform_`)
+   run kernels picked for the CPU's vector unit, so one seed gave other last bits on an AVX2 CPU
+   than on an AVX-512 one; numpy's generator and one float32 rounding give the same bytes on every
+   CPU. Then `eval()`, `torch.onnx.export` of the encoder and of `SamOnnxModel` (TorchScript
+   exporter, opset 17; tracing inputs from numpy too), and `torch.save` of the model's `state_dict`.
 4. The result is checked, not trusted: the decoder's graph and weights must have `DECODER_DIGEST`
-   (the SHA-256 of the model with its `producer_version` field cleared: with torch 2.13 and with
-   2.14.1 + torchvision 0.29.1 the files differ only there), the encoder's output on a fixed
-   input must match `ENCODER_FINGERPRINT` (exports from those two torch versions agree to 3.6e-6;
-   their constant-folded weights differ in the last bits), and the checkpoint's tensors must have
-   `CHECKPOINT_DIGEST`. A build that fails a check is removed and the error says which.
+   (the SHA-256 of the model with its `producer_version` field cleared), the checkpoint's tensors
+   `CHECKPOINT_DIGEST`, and the encoder's output on a fixed input must match `ENCODER_FINGERPRINT`
+   within `ENCODER_ATOL`. The two digests and the encoder file's bytes are the same under
+   `ATEN_CPU_CAPABILITY=default`, `avx2` and `avx512`, and with MKL and oneDNN held to AVX2
+   (tests/test_cpu_independence.py builds under each capability the CPU offers). The
+   fingerprint runs ONNX Runtime, whose kernels also follow the CPU: its output moved by at most
+   1.3e-6 between graph optimisation levels and thread counts, and torch's encoder on the same
+   weights under each capability by 1.9e-6, 26x inside the tolerance. A build that fails a
+   check is removed and the error says which.
 
 The folder is `$GA3CE_TEST_MODELS/mobilesam-random`, else `~/.cache/ga3ce-prep/test-models/...`;
 the code folder `mobilesam_code.site_dir()`.
@@ -50,6 +58,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -61,20 +70,21 @@ ENCODER = "mobile_sam_encoder.onnx"
 DECODER = "mobile_sam_decoder.onnx"
 CHECKPOINT = "mobile_sam.pt"
 STAMP = "verified"
-DECODER_DIGEST = "86cd692af82520da4b3e2f2284a2234db89f593061dea8fa0ec46a151f4a0405"
+SEED = 0
+DECODER_DIGEST = "77d27d97a09189ab2aa92443516d7972654e7770249920782c5719269e66b2a0"
 # The encoder's image_embeddings[0, ::64, ::32, ::32] (4 x 2 x 2) on `fingerprint_input()`, and
 # the mean of |e| and of e^2 over the whole output.
 ENCODER_FINGERPRINT: dict[str, Any] = {
-    "samples": [-1.8475067615509033, -2.2048611640930176, 1.0399658679962158, -0.47132137417793274,
-                0.5610381364822388, -0.002746355254203081, 0.1810426115989685, 0.8652708530426025,
-                3.6112923622131348, 1.304365634918213, 1.4991906881332397, -1.6895084381103516,
-                -0.15137962996959686, -0.5653195381164551, 0.5901634693145752, 0.637775182723999],
-    "mean_abs": 0.7785188054907628,
-    "mean_square": 0.9999965542911761,
+    "samples": [-0.7090657949447632, -0.6424496173858643, -0.48645883798599243, -0.5037955641746521,
+                -0.3097301125526428, 0.7120973467826843, 0.13895584642887115, 0.3962644040584564,
+                0.6688147783279419, 0.606624186038971, 0.9793685674667358, 0.04302418231964111,
+                -0.29685524106025696, -0.0659899115562439, 0.15877048671245575, 0.4988658130168915],
+    "mean_abs": 0.7804528525188643,
+    "mean_square": 0.9999970439869053,
 }
 ENCODER_ATOL = 5e-5
 # SHA-256 over the checkpoint's tensors (`checkpoint_digest`)
-CHECKPOINT_DIGEST = "945c6360fc99e4d5f1b3964c77a3ea741823b0a4410e47e50a3afae825a9bf6a"
+CHECKPOINT_DIGEST = "b574eecf0e784ca64fecf3ea7c90a40c78c13b3cffd0bfeffc113a058c201734"
 # The stamp of a verified folder
 STAMP_TEXT = f"{DECODER_DIGEST}\n{CHECKPOINT_DIGEST}\n"
 
@@ -178,6 +188,53 @@ def checkpoint() -> Path:
     return ensure()[0].parent / CHECKPOINT
 
 
+def _draw(name: str, shape: tuple[int, ...], bound: float) -> np.ndarray:
+    """U(-bound, bound) of `shape` as float32, from numpy's PCG64 seeded by (SEED, CRC-32 of `name`).
+    Only IEEE basic operations turn the generator's integers into values (a multiply and an add
+    per value, then one rounding to float32), so the bytes are the same on every CPU, whatever
+    vector unit torch's or numpy's kernels would pick."""
+    rng = np.random.default_rng([SEED, zlib.crc32(name.encode())])
+    return rng.uniform(-bound, bound, shape).astype(np.float32)
+
+
+def random_state(sam: Any) -> dict[str, np.ndarray]:
+    """Every tensor of `sam`'s state dict that torch's initialisers draw at random, drawn again with
+    `_draw` (the module docstring's step 3 gives the rule); the constant ones (norms' ones and
+    zeros, zero biases, BatchNorm statistics) are left out, and stay as torch sets them, exactly.
+
+    - Linear, Conv2d, ConvTranspose2d weights and their non-zero biases: U(±1/sqrt(fan_in)), the
+      bound of torch's default initialiser (fan_in as `torch.nn.init` computes it from the weight);
+    - Embedding weights and the prompt encoder's Gaussian positional matrix: unit variance, U(±√3),
+      as torch's N(0, 1);
+    - TinyViT's attention biases: standard deviation 0.5, U(±0.5·√3), so the encoder's graph
+      exercises them (torch's init leaves them at zero).
+    Raises ValueError on a randomly initialised tensor the rule does not cover."""
+    import torch
+
+    owner = {}
+    for mod_name, mod in sam.named_modules():
+        for kind in (mod.named_parameters(recurse=False), mod.named_buffers(recurse=False)):
+            for t_name, _ in kind:
+                owner[f"{mod_name}.{t_name}" if mod_name else t_name] = (mod, t_name)
+    unit = float(np.sqrt(3.0))
+    out = {}
+    for name, t in sam.state_dict().items():
+        mod, leaf = owner[name]
+        if leaf == "attention_biases":
+            out[name] = _draw(name, tuple(t.shape), 0.5 * unit)
+            continue
+        if not t.is_floating_point() or bool((t == t.reshape(-1)[0]).all()):
+            continue  # constants: exact on every CPU
+        if isinstance(mod, (torch.nn.Linear, torch.nn.Conv2d, torch.nn.ConvTranspose2d)):
+            fan_in = torch.nn.init._calculate_fan_in_and_fan_out(mod.weight)[0]
+            out[name] = _draw(name, tuple(t.shape), 1.0 / float(np.sqrt(fan_in)))
+        elif isinstance(mod, torch.nn.Embedding) or leaf == "positional_encoding_gaussian_matrix":
+            out[name] = _draw(name, tuple(t.shape), unit)
+        else:
+            raise ValueError(f"{name} ({type(mod).__name__}.{leaf}): randomly initialised, no rule draws it")
+    return out
+
+
 def _export(out: Path) -> None:
     """The export itself (module docstring, step 3), in the subprocess `build` starts."""
     import torch
@@ -186,23 +243,24 @@ def _export(out: Path) -> None:
     from mobile_sam.utils.onnx import SamOnnxModel  # imports torch only
 
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(0)
     sam = sam_model_registry["vit_t"](checkpoint=None)
-    with torch.no_grad():
-        for name, p in sam.named_parameters():
-            if name.endswith("attention_biases"):
-                p.normal_(0.0, 0.5)
+    state = {k: torch.from_numpy(v) for k, v in random_state(sam).items()}
+    unexpected = sam.load_state_dict(state, strict=False).unexpected_keys
+    assert not unexpected, unexpected
     sam.train()
     sam.eval()  # TinyViT caches its attention biases in eval(), so after the weights are final
-    image = torch.randn(1, 3, 1024, 1024)
+    # example inputs for tracing only (they fix shapes, not values); numpy's, like the weights
+    ex = np.random.default_rng(SEED)
+    image = torch.from_numpy(ex.uniform(-1, 1, (1, 3, 1024, 1024)).astype(np.float32))
     torch.onnx.export(sam.image_encoder, (image,), str(out / ENCODER), opset_version=17, dynamo=False,
                       input_names=["image"], output_names=["image_embeddings"], do_constant_folding=True)
     side = sam.prompt_encoder.image_embedding_size
     example = {
-        "image_embeddings": torch.randn(1, sam.prompt_encoder.embed_dim, *side),
-        "point_coords": torch.randint(0, 1024, (1, 5, 2), dtype=torch.float),
-        "point_labels": torch.randint(0, 4, (1, 5), dtype=torch.float),
-        "mask_input": torch.randn(1, 1, 4 * side[0], 4 * side[1]),
+        "image_embeddings": torch.from_numpy(ex.uniform(-1, 1, (1, sam.prompt_encoder.embed_dim, *side))
+                                             .astype(np.float32)),
+        "point_coords": torch.from_numpy(ex.integers(0, 1024, (1, 5, 2)).astype(np.float32)),
+        "point_labels": torch.from_numpy(ex.integers(0, 4, (1, 5)).astype(np.float32)),
+        "mask_input": torch.from_numpy(ex.uniform(-1, 1, (1, 1, 4 * side[0], 4 * side[1])).astype(np.float32)),
         "has_mask_input": torch.tensor([1], dtype=torch.float),
         "orig_im_size": torch.tensor([1500, 2250], dtype=torch.float),
     }
