@@ -24,6 +24,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "Evaluate a checkpoint: 3D/2D MAE, baselines, per-scene table, CDF plot."),
     "ablate": ("ga3ce_prep.train.cli:ablate",
                "Train the paper's ablations and print Tables 4/5 beside the paper's numbers."),
+    "experiment": ("ga3ce_prep.experiments.cli:experiment",
+                   "Run a named experiment (worlds x arms x seeds) into one results file; list them; show one."),
     "report": ("ga3ce_prep.train.cli:report",
                "One HTML page of a trained run: curves, error CDF, per-scene and ablation bars, the paper's figures."),
     "predict": ("ga3ce_prep.predict:predict",

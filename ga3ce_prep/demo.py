@@ -1,28 +1,24 @@
 """`make demo` / `ga3ce-prep demo`: the whole chain on the embedded synthetic world, run as the
-paper runs its experiments.
+paper runs its experiments: the named experiment `demo` (experiments/named.py), step by step.
 
 synth: a GFIE-format world whose rooms are each recorded in several sessions, split by session, so
 the test rooms were seen in training (the paper's GFIE and GAFA protocol), and a small transfer
 world (`synth --preset transfer`: CAD-120 format, unseen rooms, another camera: the paper's Table 2)
 -> prep (the bundled pipeline `synthetic`: sensor depth completion, the weight-free geometric
-segmenter, head position; oracle pose and view) -> three short training runs in `ablate`'s layout: the
-paper's GA3CE, ours, and the model without objects -> evaluation of the three against the v prior
-and the learning-free baselines on the seen-room test split and on the transfer world.
+segmenter, head position; oracle pose and view) -> three short training runs: the paper's GA3CE,
+ours, and the model without objects -> evaluation of the three against the v prior and the
+learning-free baselines on the seen-room test split and on the transfer world. The results file
+(out/runs/demo/results.json) names the machine and the code its figures came from.
 
-Every step is cached: rerunning reuses the datasets, the stage cache and the stores, and only
-trains again if the run folder is missing.
+Every step is cached: rerunning reuses the datasets, the stage cache, the stores and the finished
+runs.
 """
 from __future__ import annotations
 
-import json
-import os
 import time
 from pathlib import Path
-from typing import Any
 
 import click
-
-from .errors import Ga3ceError
 
 
 def _step(n: int, title: str) -> float:
@@ -32,20 +28,6 @@ def _step(n: int, title: str) -> float:
 
 def _done(t0: float) -> None:
     click.echo(f"      ({time.perf_counter() - t0:.0f} s)")
-
-
-def _world(data: Path, params: dict[str, Any]) -> None:
-    """Write the synthetic world `params` (generate's arguments) into `data`, unless it is there."""
-    from .synthetic import generate
-
-    stamp = data / "demo-params.json"
-    if stamp.is_file() and json.loads(stamp.read_text()) == params and (data / "truth.h5").is_file():
-        click.echo(f"      reusing {data}, written before with the same parameters")
-        return
-    if data.exists() and any(data.iterdir()):
-        raise Ga3ceError(f"{data} exists with other contents; remove it or pass another --out")
-    generate(**params, out=data, width=640, workers=os.cpu_count() or 1)   # the same files with any count
-    stamp.write_text(json.dumps(params))
 
 
 @click.command()
@@ -67,51 +49,46 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     the paper's GA3CE, of ours, of the model without objects, of the v prior and of the
     learning-free baselines, on test sessions of rooms seen in training and on a transfer world of
     unseen rooms and another camera. 9-14 minutes on 2 CPU cores (a study:
-    docs/studies/2026-12-05-the-demo-on-a-fresh-clone.md); rerunning reuses every step."""
-    from .model import METHODS, ModelConfig, resolve
-    from .pipeline import run_pipeline
-    from .train import TrainConfig, ablate, evaluate, format_eval_table
+    docs/studies/2026-12-05-the-demo-on-a-fresh-clone.md); rerunning reuses every step. The same
+    experiment runs as `ga3ce-prep experiment run demo`."""
+    from .experiments import demo_experiment, mae_table, run_experiment
+    from .experiments.conditions import describe
+    from .model import METHODS, resolve
+    from .train import evaluate, format_eval_table
     from .train.evaluate import BASELINE_NOTES
 
+    exp = demo_experiment(rooms, sessions_per_room, frames_per_session, transfer_rooms, epochs, seed)
     root = Path(out)
-    data, store, run = root / "synthetic", root / "synthetic.zarr", root / "runs" / "demo"
-    tdata, tstore = root / "transfer", root / "transfer.zarr"
+    (seen, world), = exp.worlds.items()
+    worlds = {**exp.worlds, **exp.transfer}
     t_all = time.perf_counter()
 
-    t0 = _step(1, f"synthetic worlds: {rooms} rooms x {sessions_per_room} sessions x {frames_per_session} frames, "
-                  f"GFIE format -> {data}; transfer: {transfer_rooms} rooms x 30 frames, CAD-120 format -> {tdata}")
-    _world(data, {"fmt": "gfie", "scenes": rooms, "sessions_per_room": sessions_per_room,
-                  "frames_per_scene": frames_per_session, "seed": seed})
-    if transfer_rooms:
-        _world(tdata, {"fmt": "cad120", "preset": "transfer", "scenes": transfer_rooms, "frames_per_scene": 30,
-                       "seed": seed})
+    t0 = _step(1, "synthetic worlds: " + "; ".join(f"{w.describe()} -> {root / n}" for n, w in worlds.items()))
+    for name, w in worlds.items():
+        w.ensure_data(root / name)
     _done(t0)
 
-    t0 = _step(2, f"preprocessing (pipeline synthetic) -> {store}" + (f", {tstore}" if transfer_rooms else ""))
-    click.echo(run_pipeline("synthetic", data=data, out=store, workers=workers).format())
-    if transfer_rooms:
-        click.echo(run_pipeline("synthetic", data=tdata, out=tstore, workers=workers,
-                                overrides=["dataset.format=cad120"]).format())
+    t0 = _step(2, "preprocessing (pipeline synthetic) -> " + ", ".join(str(root / f"{n}.zarr") for n in worlds))
+    stores = {name: w.ensure(root / name, root / f"{name}.zarr", workers=workers) for name, w in worlds.items()}
     _done(t0)
 
-    rows = ("full", "no-objects", "ours")   # ours starts from the no-objects model
+    runs = {a.folder: exp.run_dir(root, seen, a, seed) for a in exp.arms}
     t0 = _step(3, f"training the paper's GA3CE, ours and the model without objects ({epochs} epochs each, the "
-                  f"default recipe: docs/training.md) -> {run}/{{{','.join(rows)}}}/seed{seed}")
-    if all((run / row / f"seed{seed}" / "best.pt").is_file() for row in rows):
-        click.echo("      reusing the trained runs (delete them to train again)")
-    base = TrainConfig(store=str(store), out=str(run), epochs=epochs, seed=seed, model=ModelConfig.for_method("ga3ce"))
-    ablate(base, run, rows=list(rows))
+                  f"default recipe: docs/training.md) -> {runs['full'].parent.parent}/{{{','.join(runs)}}}/seed{seed}")
+    results = run_experiment(exp, root, echo=click.echo, stores=stores)
     _done(t0)
 
-    ckpt = run / "full" / f"seed{seed}" / "best.pt"
+    store, ckpt = stores[seen], runs["full"] / "best.pt"
+    compare: dict[str, str | Path] = {"ours": runs["ours"] / "best.pt"}   # evaluated beside it, by name
+    no_objects = runs["no-objects"] / "best.pt"
     t0 = _step(4, "evaluation on the test sessions (rooms seen in training, other recordings)")
-    result = evaluate(str(store), ckpt, split="test")
+    result = evaluate(str(store), ckpt, split="test", compare=compare, no_objects=no_objects)
     click.echo(format_eval_table(result, per_scene=False))
     _done(t0)
-    transfer = None
-    if transfer_rooms:
+    if exp.transfer:
         t0 = _step(5, "evaluation on the transfer world (unseen rooms, another camera: the paper's Table 2)")
-        transfer = evaluate(str(tstore), ckpt, split="test", cdf_path=None)
+        transfer = evaluate(str(stores["transfer"]), ckpt, split="test", cdf_path=None, compare=compare,
+                            no_objects=no_objects)
         click.echo(format_eval_table(transfer, per_scene=False))
         _done(t0)
 
@@ -123,16 +100,22 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     click.echo("\nthe rows:")
     for key in result.methods:
         click.echo(f"  {labels[key]:26s} {notes[key]}")
+    # the figures from the results file, each arm scored on its own
+    table = mae_table(results)
+    arm_of = {"model": "full", "ours": "ours", "no_objects": "no-objects", "view_prior": "v prior"}
     click.echo(f"\n3D MAE (deg)               {'seen rooms':>10s} {'transfer':>9s}")
-    for key in ("model", "ours", "no_objects", "view_prior"):
-        other = f"{transfer.methods[key].mae3d:9.2f}" if transfer is not None else f"{'-':>9s}"
-        click.echo(f"  {labels[key]:24s} {result.methods[key].mae3d:10.2f} {other}")
-    m = {k: v.mae3d for k, v in result.methods.items()}
+    for key, arm in arm_of.items():
+        other = f"{table[(seen, 'transfer')][arm][0]:9.2f}" if exp.transfer else f"{'-':>9s}"
+        click.echo(f"  {labels[key]:24s} {table[(seen, seen)][arm][0]:10.2f} {other}")
+    m = {k: table[(seen, seen)][arm][0] for k, arm in arm_of.items()}
     click.secho(f"seen rooms = the test sessions of rooms recorded in training (the paper's GFIE protocol: no "
                 f"objects 13.1 -> GA3CE 11.1, v prior 19.4); transfer = unseen rooms and another camera "
                 f"(its Table 2). The paper's GA3CE {'beats' if m['model'] < m['no_objects'] else 'does NOT beat'} "
                 f"its no-objects ablation on the seen rooms here.", bold=True)
-    click.echo(f"angular-error CDF: {result.cdf_png}")
+    click.echo(f"machine: {describe(results['machine'])}. Training repeats bit for bit on one machine type, vector "
+               "unit and thread count; another CPU moves these digits about as much as another seed "
+               "(docs/studies/2026-12-06-figures-across-cpus.md).")
+    click.echo(f"angular-error CDF: {result.cdf_png}; results: {exp.results_path(root)}")
     click.echo(f"total {time.perf_counter() - t_all:.0f} s. Next: ga3ce-prep info {store} | "
                f"ga3ce-prep show {store} <frame id> --out frame.png")
 

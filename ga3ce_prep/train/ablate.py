@@ -18,7 +18,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,9 +31,7 @@ from ..store import open_store
 from .evaluate import evaluate
 from .plots import plot_ablation
 from .profiles import DatasetProfile
-from .trainer import TrainConfig, reuse_g0, run_done, train
-
-log = logging.getLogger("ga3ce_prep.train")
+from .trainer import TrainConfig, ensure_trained
 
 
 @dataclass(frozen=True)
@@ -102,7 +99,7 @@ def saved_design(run: Path) -> str | None:
     return ModelConfig.from_dict(json.loads(path.read_text())["model"]).method
 
 
-def _check_row_design(run: Path, ab: Ablation, want: str) -> None:
+def check_row_design(run: Path, ab: Ablation, want: str) -> None:
     """ConfigError when the run folder of a design or alias row holds another design than the row
     trains (the alias has moved on since it was trained)."""
     have = saved_design(run)
@@ -142,12 +139,9 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
             cfg = dataclasses.replace(base, out=str(run), seed=seed,
                                       model=dataclasses.replace(base.model, **ab.overrides))
             if ab.design is not None and not force:
-                _check_row_design(run, ab, cfg.model.method)
-            if cfg.model.g0_frozen and not force:   # its g0 stage is the no-objects row, weight for weight
-                reuse_g0(run, out / "no-objects" / f"seed{seed}", cfg.epochs)
-            if force or not run_done(run, cfg.epochs):
-                log.info("ablation %s, seed %d: training into %s", name, seed, run)
-                train(cfg, resume=(run / "last.pt").exists() and not force, force=force)
+                check_row_design(run, ab, cfg.model.method)
+            # a frozen g0 is the no-objects row, weight for weight
+            ensure_trained(cfg, force=force, twin=out / "no-objects" / f"seed{seed}")
             r = evaluate(base.store, run / "best.pt", split=split, cdf_path="auto", threads=base.threads,
                          no_objects=None, compare={})
             maes.append(r.model.mae3d)

@@ -179,6 +179,28 @@ def run_done(run: Path, epochs: int) -> bool:
     return bool(rows) and int(rows[-1]["epoch"]) + 1 >= epochs
 
 
+def ensure_trained(config: TrainConfig, force: bool = False, resume: bool = True, twin: Path | None = None) -> Path:
+    """The run of `config` in config.out, trained unless it is done; returns its best.pt.
+
+    Done means: the run finished config.epochs epochs, and its checkpoint was trained on this
+    store (fingerprint) with this configuration, up to the fields that cannot change a result
+    (`checkpoint.RESULT_NEUTRAL`); a finished run of another store or configuration is refused
+    (CheckpointError naming the differences), never silently reused. An unfinished run is resumed
+    (`resume`; train refuses a changed one). force: train again over whatever is there. twin: for a
+    frozen-g0 design, a finished run of its no-objects twin (same store, recipe and seed), copied in
+    as its g0 stage instead of training that again (`reuse_g0`)."""
+    run = Path(config.out)
+    if twin is not None and config.model.g0_frozen and not force:
+        reuse_g0(run, twin, config.epochs)
+    if not force and run_done(run, config.epochs):
+        check_checkpoint(load_checkpoint(run / "best.pt"), run / "best.pt",
+                         store_fingerprint(open_store(config.store)), config.to_dict())
+        return run / "best.pt"
+    log.info("training into %s", run)
+    train(config, resume=resume and (run / "last.pt").exists() and not force, force=force)
+    return run / "best.pt"
+
+
 def g0_run(config: TrainConfig, resume: bool = False, force: bool = False) -> Path:
     """The no-objects model a frozen-g0 pointer model starts from, with config's recipe and seed in
     config.out/g0: reused when finished, else resumed or trained (train's resume and force mean

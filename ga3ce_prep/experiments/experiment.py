@@ -1,0 +1,214 @@
+"""`Arm` and `Experiment`: worlds x arms x seeds, trained unless done, scored on a split and on
+transfer worlds, and one results file that carries the conditions of every figure in it.
+
+Layout under an output folder OUT (the demo's is `out/`):
+
+    OUT/<world>/              the world's dataset (World.ensure_data)
+    OUT/<world>.zarr          its store
+    OUT/runs/<experiment>/<world>/<arm>/seed<k>/   a run (train/trainer.py's run folder)
+    OUT/runs/<experiment>/results.json             the results (`run_experiment`)
+
+A run is trained unless it is done (`trainer.ensure_trained`: finished, same store, same
+configuration); a score is computed unless the run folder holds one for the same checkpoint, store
+and split (`ensure_scored`). Rerunning an experiment is so a check, and an interrupted one goes on.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..files import file_sha256
+from .conditions import code, describe, machine
+from .world import World
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm of an experiment: a row of the paper's ablations or one of our designs
+    (train/ablate.py `ABLATIONS`: full, no-objects, no-d3, ..., ga3ce, pointer-frozen, ours), with
+    training-recipe fields changed for it alone (TrainConfig's names: batching, lr, epochs, ...)."""
+
+    row: str                                                # the ablation row or design
+    recipe: dict[str, Any] = field(default_factory=dict)    # TrainConfig fields this arm changes
+    name: str = ""                                          # its run folder; "" = the row's name
+
+    @property
+    def folder(self) -> str:
+        return self.name or self.row
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """Arms trained on each training world with each seed, scored on `split` of that world and on
+    the test split of every transfer world (the paper's Table 2: unseen rooms, another camera)."""
+
+    name: str                                               # its name: `ga3ce-prep experiment run NAME`
+    question: str                                           # what it asks, one sentence
+    worlds: dict[str, World]                                # training worlds by name (their folders)
+    arms: tuple[Arm, ...]                                   # the arms, trained in this order
+    seeds: tuple[int, ...] = (0,)                           # training seeds of every arm
+    split: str = "test"                                     # the split scored ("val" while choosing a design)
+    transfer: dict[str, World] = field(default_factory=dict)  # worlds only scored on, by name
+    recipe: dict[str, Any] = field(default_factory=dict)   # TrainConfig fields of every arm
+    base: str = "ga3ce"                                     # the design the ablation switches apply to
+
+    def __post_init__(self) -> None:
+        from ..train.ablate import BY_NAME
+
+        if unknown := [a.row for a in self.arms if a.row not in BY_NAME]:
+            raise ConfigError(f"experiment {self.name}: unknown rows {unknown}; choose from {list(BY_NAME)}")
+        folders = [a.folder for a in self.arms]
+        if len(set(folders)) != len(folders):
+            raise ConfigError(f"experiment {self.name}: two arms share a folder ({folders}); name them")
+        if set(self.worlds) & set(self.transfer):
+            raise ConfigError(f"experiment {self.name}: a world is both trained on and transfer")
+
+    def with_seeds(self, seeds: tuple[int, ...]) -> Experiment:
+        return dataclasses.replace(self, seeds=tuple(seeds))
+
+    def run_dir(self, out: Path, world: str, arm: Arm, seed: int) -> Path:
+        return Path(out) / "runs" / self.name / world / arm.folder / f"seed{seed}"
+
+    def results_path(self, out: Path) -> Path:
+        return Path(out) / "runs" / self.name / "results.json"
+
+    def train_config(self, out: Path, world: str, arm: Arm, seed: int, progress: bool = True) -> Any:
+        """The TrainConfig of one run: the base design with the row's switches, the experiment's
+        recipe, then the arm's."""
+        from ..model import ModelConfig
+        from ..train import TrainConfig
+        from ..train.ablate import BY_NAME
+
+        model = dataclasses.replace(ModelConfig.for_method(self.base), **BY_NAME[arm.row].overrides)
+        return TrainConfig(store=str(Path(out) / f"{world}.zarr"), out=str(self.run_dir(out, world, arm, seed)),
+                           seed=seed, progress=progress, model=model, **{**self.recipe, **arm.recipe})
+
+
+def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -> dict[str, Any]:
+    """The checkpoint's model scored on `split` of `store` (train/evaluate.py, without siblings or
+    plots): 3D and 2D MAE, median, scored N of M, and the v prior on the same frames. Kept in the
+    run folder as scored-<split>-<key>.json, the key naming the checkpoint's bytes, the store's
+    fingerprint and the split, and read back while they hold."""
+    import hashlib
+
+    from ..store import open_store
+    from ..train import evaluate
+    from ..train.dataset import store_fingerprint
+
+    fingerprint = store_fingerprint(open_store(store))
+    key = hashlib.sha256(f"{file_sha256(checkpoint)}|{fingerprint}|{split}".encode()).hexdigest()[:16]
+    path = Path(checkpoint).parent / f"scored-{split}-{key}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    r = evaluate(str(store), checkpoint, split=split, cdf_path=None, no_objects=None, compare={}, threads=threads)
+    m = r.methods["model"]
+    score = {"mae3d": m.mae3d, "mae2d": m.mae2d, "median3d": m.median3d, "scored": r.n_frames,
+             "expected": r.frames.expected, "protocol": r.frames.protocol, "epoch": r.epoch,
+             "v_prior_mae3d": r.methods["view_prior"].mae3d, "label": r.labels["model"],
+             "store_fingerprint": fingerprint}
+    path.write_text(json.dumps(score, indent=2, default=float))
+    return score
+
+
+def _world_record(world: World, store: Path) -> dict[str, Any]:
+    """A world's declaration and what its store says it was made with (pipeline, stage backends
+    and parameters: the segmenter and the cues' noise)."""
+    from ..store import open_store
+
+    attrs = open_store(store).attrs
+    return {**world.to_json(), "store": str(store), "pipeline_file": attrs.get("pipeline"),
+            "stages": attrs.get("stages")}
+
+
+def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, workers: int | None = None,
+                   echo: Any = print, stores: dict[str, Path] | None = None) -> dict[str, Any]:
+    """Make every world's store, train every run unless done, score each, and write the results
+    (returned, and at `exp.results_path(out)`): the experiment, its worlds as declared and as their
+    stores record them, each arm's resolved training config, the machine and the code, and one row
+    per (world, arm, seed, scored-on world) with its 3D MAE and "scored N of M". stores: the
+    worlds' stores when the caller made them already (else `World.ensure` makes or checks them)."""
+    from ..model import ModelConfig
+    from ..train.ablate import BY_NAME, check_row_design, row_label
+    from ..train.trainer import ensure_trained
+
+    out = Path(out)
+    stores = stores or {name: w.ensure(out / name, out / f"{name}.zarr", workers=workers, progress=progress)
+                        for name, w in {**exp.worlds, **exp.transfer}.items()}
+    scores: list[dict[str, Any]] = []
+    arms: dict[str, dict[str, Any]] = {}
+    t0 = time.perf_counter()
+    for world in exp.worlds:
+        for arm in exp.arms:
+            ab = BY_NAME[arm.row]
+            for seed in exp.seeds:
+                cfg = exp.train_config(out, world, arm, seed, progress=progress)
+                run = Path(cfg.out)
+                if ab.design is not None:
+                    check_row_design(run, ab, cfg.model.method)
+                twin = exp.run_dir(out, world, Arm("no-objects"), seed)
+                echo(f"  {world} / {arm.folder} / seed {seed}: {run}")
+                best = ensure_trained(cfg, twin=twin)
+                recipe = {k: v for k, v in cfg.to_dict().items() if k not in ("store", "out", "seed", "progress")}
+                arms[arm.folder] = {"row": arm.row, "design": cfg.model.method,
+                                    "label": row_label(ab, ModelConfig.for_method(exp.base)), "config": recipe}
+                for on, split in [(world, exp.split), *((t, "test") for t in exp.transfer)]:
+                    s = ensure_scored(stores[on], best, split, threads=cfg.threads)
+                    scores.append({"world": world, "arm": arm.folder, "seed": seed, "scored_on": on, "split": split,
+                                   "run": str(run), **s})
+    results = {"experiment": exp.name, "question": exp.question, "split": exp.split, "seeds": list(exp.seeds),
+               "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "seconds": round(time.perf_counter() - t0, 1),
+               "code": code(), "machine": machine(),
+               "worlds": {n: _world_record(w, stores[n]) for n, w in exp.worlds.items()},
+               "transfer": {n: _world_record(w, stores[n]) for n, w in exp.transfer.items()},
+               "arms": arms, "scores": scores}
+    path = exp.results_path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=2, default=float))
+    return results
+
+
+def mae_table(results: dict[str, Any]) -> dict[tuple[str, str], dict[str, list[float]]]:
+    """{(training world, scored-on world): {arm: [3D MAE per seed, in seed order]}}, arms in the
+    experiment's order, then the v prior as the arm "v prior" (one value: no seed changes it)."""
+    table: dict[tuple[str, str], dict[str, list[float]]] = {}
+    prior: dict[tuple[str, str], float] = {}
+    for s in sorted(results["scores"], key=lambda s: s["seed"]):
+        table.setdefault((s["world"], s["scored_on"]), {}).setdefault(s["arm"], []).append(s["mae3d"])
+        prior[(s["world"], s["scored_on"])] = s["v_prior_mae3d"]
+    for key, v in prior.items():
+        table[key]["v prior"] = [v]
+    return table
+
+
+def format_results(results: dict[str, Any]) -> str:
+    """Any results file as text: per training world and scored-on world, each arm's 3D MAE (mean +-
+    std over seeds, and each seed's), scored N of M, then the machine and the code."""
+    arms = results["arms"]
+    lines = [f"{results['experiment']}: {results['question']}"]
+    for (world, on), cell in mae_table(results).items():
+        w = results["worlds"][world] if on == world else results["transfer"][on]
+        first = next(s for s in results["scores"] if s["world"] == world and s["scored_on"] == on)
+        what = w["protocol"] if on == world else f"transfer (trained on {world})"
+        lines += ["", f"{on}: {what}, {first['split']} split, scored {first['scored']} of {first['expected']}; "
+                      f"{_describe_world(w)}",
+                  f"  {'3D MAE (deg)':30s} {'mean +- std':>14s}  seeds"]
+        for arm, maes in cell.items():
+            label = arms[arm]["label"] if arm in arms else arm
+            mean = f"{np.mean(maes):.2f}" + (f" +- {np.std(maes):.2f}" if len(maes) > 1 else "")
+            seeds = " / ".join(f"{x:.2f}" for x in maes) if len(maes) > 1 else ""
+            lines.append(f"  {label:30s} {mean:>14s}  {seeds}".rstrip())
+    c = results["code"]
+    lines += ["", f"machine: {describe(results['machine'])}; code {c['version']}"
+              + (f" at {c['commit'][:7]}{' (uncommitted changes)' if c['dirty'] else ''}" if c.get("commit") else "")]
+    return "\n".join(lines)
+
+
+def _describe_world(w: dict[str, Any]) -> str:
+    return World.from_json(w).describe() + f", pipeline {w['pipeline']}"

@@ -1,0 +1,101 @@
+"""Experiments as objects (ga3ce_prep/experiments): a World made once, arms trained unless done,
+scores that match an evaluation of the same checkpoint, and one results file that names its
+conditions."""
+import json
+import os
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ga3ce_prep.errors import ConfigError
+from ga3ce_prep.experiments import Arm, Experiment, World, format_results, mae_table, run_experiment
+from ga3ce_prep.experiments.cli import experiment as experiment_cli
+from ga3ce_prep.experiments.named import EXPERIMENTS, demo_experiment
+from ga3ce_prep.testing.worlds import SMALL
+from ga3ce_prep.train import evaluate
+from ga3ce_prep.train.checkpoint import CheckpointError
+
+TINY = World(rooms=3, sessions=3, frames=2, seed=3, width=160, overrides=tuple(SMALL))
+TINY_TRANSFER = World(fmt="cad120", preset="transfer", rooms=1, sessions=1, frames=4, seed=3, width=160,
+                      overrides=tuple(SMALL))
+
+
+def tiny(**kw) -> Experiment:
+    args = dict(name="tiny", question="does it run?", worlds={"w": TINY},
+                arms=(Arm("full"), Arm("no-objects"), Arm("ours")), seeds=(0, 1),
+                transfer={"t": TINY_TRANSFER}, recipe={"epochs": 1, "batch_size": 8})
+    return Experiment(**{**args, **kw})
+
+
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    out = tmp_path_factory.mktemp("exp")
+    return out, run_experiment(tiny(), out, progress=False)
+
+
+def test_results_carry_scores_and_conditions(done):
+    out, r = done
+    assert json.loads((out / "runs" / "tiny" / "results.json").read_text()) == json.loads(json.dumps(r, default=float))
+    # 3 arms x 2 seeds, each scored on its world and on the transfer world
+    assert len(r["scores"]) == 12
+    assert {(s["arm"], s["seed"], s["scored_on"]) for s in r["scores"]} == {
+        (a, k, on) for a in ("full", "no-objects", "ours") for k in (0, 1) for on in ("w", "t")}
+    m = r["machine"]
+    assert m["vector_unit"] in ("default", "avx2", "avx512") and m["threads"] >= 1 and m["cpu"]
+    assert len(r["code"]["commit"] or "x" * 40) == 40
+    w = r["worlds"]["w"]
+    assert w["protocol"] == "seen rooms" and w["rooms"] == 3 and w["stages"]["objects"]["backend"] == "geometric"
+    assert r["transfer"]["t"]["preset"] == "transfer"
+    assert r["arms"]["ours"]["design"] == "pointer-frozen" and r["arms"]["full"]["design"] == "ga3ce"
+    assert r["arms"]["full"]["config"]["epochs"] == 1 and r["arms"]["full"]["config"]["batch_size"] == 8
+    for s in r["scores"]:
+        assert 0 < s["mae3d"] < 180 and 0 < s["scored"] <= s["expected"]
+
+
+def test_a_score_is_the_evaluation_of_its_checkpoint(done):
+    out, r = done
+    s = next(s for s in r["scores"] if s["arm"] == "ours" and s["seed"] == 1 and s["scored_on"] == "t")
+    direct = evaluate(str(out / "t.zarr"), out / "runs" / "tiny" / "w" / "ours" / "seed1" / "best.pt", split="test",
+                      cdf_path=None, no_objects=None, compare={})
+    assert s["mae3d"] == pytest.approx(direct.methods["model"].mae3d, abs=1e-9)
+    assert s["v_prior_mae3d"] == pytest.approx(direct.methods["view_prior"].mae3d, abs=1e-9)
+    table = mae_table(r)
+    assert table[("w", "t")]["ours"][1] == s["mae3d"]
+    assert list(table[("w", "w")]) == ["full", "no-objects", "ours", "v prior"]
+    text = format_results(r)
+    full = table[("w", "w")]["full"]
+    assert f"{np.mean(full):.2f} +- {np.std(full):.2f}" in text and f"{full[0]:.2f} / {full[1]:.2f}" in text
+    assert "seen rooms, test split" in text and "machine: " in text
+
+
+def test_a_rerun_trains_nothing_and_a_changed_recipe_is_refused(done):
+    out, r = done
+    runs = out / "runs" / "tiny" / "w"
+    before = {p: p.stat().st_mtime_ns for p in runs.rglob("best.pt")}
+    again = run_experiment(tiny(), out, progress=False)
+    assert {p: p.stat().st_mtime_ns for p in runs.rglob("best.pt")} == before
+    assert [s["mae3d"] for s in again["scores"]] == [s["mae3d"] for s in r["scores"]]
+    with pytest.raises(CheckpointError, match="lr"):
+        run_experiment(tiny(arms=(Arm("full", recipe={"lr": 1e-3}),)), out, progress=False)
+    # the ours arm's g0 is its no-objects twin, weight for weight
+    assert (runs / "ours" / "seed0" / "g0" / "best.pt").is_file()
+
+
+def test_declarations_are_checked():
+    with pytest.raises(ConfigError, match="unknown rows"):
+        tiny(arms=(Arm("no-such-row"),))
+    with pytest.raises(ConfigError, match="share a folder"):
+        tiny(arms=(Arm("full"), Arm("full", recipe={"lr": 1e-3})))
+    d = demo_experiment()
+    assert [a.row for a in d.arms] == ["full", "no-objects", "ours"] and d.worlds["synthetic"].sessions == 4
+    assert set(EXPERIMENTS) >= {"demo", "paper-tables"}
+    assert World.from_json(TINY.to_json()) == TINY
+
+
+def test_the_cli_lists_and_shows(done):
+    out, _ = done
+    res = CliRunner().invoke(experiment_cli, ["list"])
+    assert res.exit_code == 0 and "paper-tables" in res.output and "60 rooms x 5 sessions x 20 frames" in res.output
+    res = CliRunner().invoke(experiment_cli, ["show", os.fspath(out / "runs" / "tiny" / "results.json")])
+    assert res.exit_code == 0 and "scored" in res.output and "pointer-frozen (ours)" in res.output
