@@ -48,8 +48,8 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     """Run synth -> prep -> train -> eval on the embedded synthetic worlds and print the 3D MAE of
     the paper's GA3CE, of ours, of the model without objects, of the v prior and of the
     learning-free baselines, on test sessions of rooms seen in training and on a transfer world of
-    unseen rooms and another camera. 9-14 minutes on 2 CPU cores (a study:
-    docs/studies/2026-12-05-the-demo-on-a-fresh-clone.md); rerunning reuses every step. The same
+    unseen rooms and another camera. 10-16 minutes with set-up on 2 CPU cores (a study:
+    docs/studies/2026-12-06-figures-across-cpus.md); rerunning reuses every step. The same
     experiment runs as `ga3ce-prep experiment run demo`."""
     from .experiments import demo_experiment, mae_table, run_experiment
     from .experiments.conditions import describe

@@ -114,7 +114,9 @@ def ablate(base: TrainConfig, out: str | Path, rows: list[str] | None = None, se
            split: str = "test", force: bool = False) -> dict[str, Any]:
     """Train and evaluate each ablation row (out/<row>/seed<k>) with the base recipe.
 
-    Finished runs are reused (the command can be rerun to resume); unfinished ones are resumed.
+    Finished runs are reused while their checkpoint matches the store and the row's configuration
+    (`trainer.ensure_trained`; else refused, naming the differences), so the command can be rerun
+    to resume; unfinished ones are resumed.
     Returns {rows: [...], paper_column, store, seeds, full_best, table} and writes out/ablation.json,
     out/ablation.csv and out/ablation.png.
     """
