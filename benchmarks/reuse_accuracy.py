@@ -50,9 +50,8 @@ from tqdm import tqdm
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.store import open_store
 from ga3ce_prep.train import TrainConfig
-from ga3ce_prep.train.ablate import run_done
 from ga3ce_prep.train.evaluate import evaluate
-from ga3ce_prep.train.trainer import train
+from ga3ce_prep.train.trainer import ensure_trained
 
 from cpu_lock import CLI, cpu_lock, run_locked
 from reuse_sequence import AGREE_M, within
@@ -79,7 +78,7 @@ def agreement(exact_path: Path, reuse_path: Path) -> dict:
 
 def seed_run(store: Path, other: Path, run: Path, seed: int, threads: int, keep_last: bool) -> dict:
     """Ours (the model this study measured) with the default recipe, trained with `seed` on `store`
-    into `run` (a finished run is reused, an unfinished one resumed) and its test 3D MAEs: best.pt on
+    into `run` (`ensure_trained`: a finished run is reused, an unfinished one resumed) and its test 3D MAEs: best.pt on
     its own store (`best`) and on the other store's objects (`swapped`), last.pt on its own store
     (`last`). Kept in run/mae.json."""
     cached = run / "mae.json"
@@ -87,8 +86,7 @@ def seed_run(store: Path, other: Path, run: Path, seed: int, threads: int, keep_
         return json.loads(cached.read_text())
     cfg = TrainConfig(store=str(store), out=str(run), seed=seed, threads=threads, progress=False,
                       model=ModelConfig.for_method("pointer-joint"))
-    if not run_done(run, cfg.epochs):
-        train(cfg, resume=(run / "last.pt").exists())
+    ensure_trained(cfg)
 
     logging.getLogger("ga3ce_prep.train").setLevel(logging.ERROR)   # the swapped test's expected store warning
 

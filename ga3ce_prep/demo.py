@@ -63,13 +63,14 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     worlds = {**exp.worlds, **exp.transfer}
     t_all = time.perf_counter()
 
-    t0 = _step(1, "synthetic worlds: " + "; ".join(f"{w.describe()} -> {root / n}" for n, w in worlds.items()))
+    data = exp.data_dirs(root)
+    t0 = _step(1, "synthetic worlds: " + "; ".join(f"{w.describe()} -> {data[n]}" for n, w in worlds.items()))
     for name, w in worlds.items():
-        w.ensure_data(root / name)
+        w.ensure_data(data[name])
     _done(t0)
 
     t0 = _step(2, "preprocessing (pipeline synthetic) -> " + ", ".join(str(root / f"{n}.zarr") for n in worlds))
-    stores = {name: w.ensure(root / name, root / f"{name}.zarr", workers=workers) for name, w in worlds.items()}
+    stores = exp.stores(root, workers=workers)
     _done(t0)
 
     runs = {a.folder: exp.run_dir(root, seen, a, seed) for a in exp.arms}

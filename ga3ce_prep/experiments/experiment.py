@@ -3,7 +3,8 @@ transfer worlds, and one results file that carries the conditions of every figur
 
 Layout under an output folder OUT (the demo's is `out/`):
 
-    OUT/<world>/              the world's dataset (World.ensure_data)
+    OUT/<world>/              the world's dataset (World.ensure_data; `World.data` names another
+                              world's folder for worlds that differ in their pipeline only)
     OUT/<world>.zarr          its store
     OUT/runs/<experiment>/<world>/<arm>/seed<k>/   a run (train/trainer.py's run folder)
     OUT/runs/<experiment>/results.json             the results (`run_experiment`)
@@ -33,10 +34,12 @@ from .world import World
 class Arm:
     """One arm of an experiment: a row of the paper's ablations or one of our designs
     (train/ablate.py `ABLATIONS`: full, no-objects, no-d3, ..., ga3ce, pointer-frozen, ours), with
-    training-recipe fields changed for it alone (TrainConfig's names: batching, lr, epochs, ...)."""
+    training-recipe fields changed for it alone (TrainConfig's names: batching, lr, epochs, ...) and
+    model fields changed on top of the row's (a design under study: ModelConfig's names)."""
 
     row: str                                                # the ablation row or design
     recipe: dict[str, Any] = field(default_factory=dict)    # TrainConfig fields this arm changes
+    model: dict[str, Any] = field(default_factory=dict)     # ModelConfig fields changed on top of the row's
     name: str = ""                                          # its run folder; "" = the row's name
 
     @property
@@ -73,6 +76,17 @@ class Experiment:
     def with_seeds(self, seeds: tuple[int, ...]) -> Experiment:
         return dataclasses.replace(self, seeds=tuple(seeds))
 
+    def data_dirs(self, out: Path) -> dict[str, Path]:
+        """Each world's dataset folder: OUT/<its `data`, else its name> (worlds that differ in their
+        pipeline only name one dataset)."""
+        return {name: Path(out) / (w.data or name) for name, w in {**self.worlds, **self.transfer}.items()}
+
+    def stores(self, out: Path, workers: int | None = None, progress: bool = True) -> dict[str, Path]:
+        """Every world's store, OUT/<name>.zarr, made or checked (`World.ensure`)."""
+        data = self.data_dirs(out)
+        return {name: w.ensure(data[name], Path(out) / f"{name}.zarr", workers=workers, progress=progress)
+                for name, w in {**self.worlds, **self.transfer}.items()}
+
     def run_dir(self, out: Path, world: str, arm: Arm, seed: int) -> Path:
         return Path(out) / "runs" / self.name / world / arm.folder / f"seed{seed}"
 
@@ -86,9 +100,10 @@ class Experiment:
         from ..train import TrainConfig
         from ..train.ablate import BY_NAME
 
-        model = dataclasses.replace(ModelConfig.for_method(self.base), **BY_NAME[arm.row].overrides)
+        model = dataclasses.replace(ModelConfig.for_method(self.base), **{**BY_NAME[arm.row].overrides, **arm.model})
+        frames = {"train_frames": self.worlds[world].train_frames} if self.worlds[world].train_frames else {}
         return TrainConfig(store=str(Path(out) / f"{world}.zarr"), out=str(self.run_dir(out, world, arm, seed)),
-                           seed=seed, progress=progress, model=model, **{**self.recipe, **arm.recipe})
+                           seed=seed, progress=progress, model=model, **{**frames, **self.recipe, **arm.recipe})
 
 
 def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -> dict[str, Any]:
@@ -139,8 +154,7 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
     from ..train.trainer import ensure_trained
 
     out = Path(out)
-    stores = stores or {name: w.ensure(out / name, out / f"{name}.zarr", workers=workers, progress=progress)
-                        for name, w in {**exp.worlds, **exp.transfer}.items()}
+    stores = stores or exp.stores(out, workers=workers, progress=progress)
     scores: list[dict[str, Any]] = []
     arms: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()

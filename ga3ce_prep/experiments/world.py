@@ -31,6 +31,9 @@ class World:
     width: int = 640                        # image width, pixels
     pipeline: str = "synthetic"             # the bundled pipeline (or file) that makes its store
     overrides: tuple[str, ...] = field(default=())  # the pipeline's `--set` settings
+    train_frames: int | None = None         # train on this many of its training frames, evenly spaced; None: all
+    shard_size: int | None = None           # frames per pipeline shard (one camera session each for `reuse: sequence`)
+    data: str = ""                          # its dataset's folder under the output folder; "": the world's name
 
     @property
     def protocol(self) -> str:
@@ -85,7 +88,7 @@ class World:
         self.ensure_data(data, progress=progress)
         fmt = [] if self.fmt == "gfie" else [f"dataset.format={self.fmt}"]
         summary = run_pipeline(self.pipeline, data=data, out=store, workers=workers, progress=progress,
-                               overrides=[*fmt, *self.overrides])
+                               overrides=[*fmt, *self.overrides], shard_size=self.shard_size)
         if progress:
             click.echo(summary.format())
         return store

@@ -14,7 +14,8 @@ checkpoint's config, the eval table and `ablate`'s output name the design, not t
   commit 6147290 (2026-11-29, then the default output) to 59f75a3 (2026-12-01).
 - `pointer-frozen`: the same pointer, but g0 is the model without objects, trained first and
   frozen (pointer_g0 "frozen"); chosen over pointer-joint on the validation splits of three
-  worlds (benchmarks/objects_value.py --phase choose). `ours` since commit 59f75a3 (2026-12-01).
+  worlds (the objects-value driver's choosing phase, 01a7406:benchmarks/objects_value.py). `ours`
+  since commit 59f75a3 (2026-12-01).
 
 Before 6147290 the only model was the paper's (every study of then measured `ga3ce`).
 `ALIAS_HISTORY` records which design `ours` named when, so a checkpoint that stored the alias
