@@ -3,6 +3,7 @@ scores that match an evaluation of the same checkpoint, and one results file tha
 conditions."""
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -91,6 +92,18 @@ def test_declarations_are_checked():
     assert [a.row for a in d.arms] == ["full", "no-objects", "ours"] and d.worlds["synthetic"].sessions == 4
     assert set(EXPERIMENTS) >= {"demo", "paper-tables"}
     assert World.from_json(TINY.to_json()) == TINY
+    # an arm's model fields go on top of its row's, a world's frame cap into the recipe
+    e = tiny(worlds={"w": TINY, "w2": World(seed=9, pipeline="synthetic-oracle", data="w", train_frames=40)},
+             arms=(Arm("ours", model={"pointer_kappa": 100.0}, name="k"),))
+    cfg = e.train_config(Path("o"), "w2", e.arms[0], 1)
+    assert (cfg.model.method, cfg.model.pointer_kappa, cfg.train_frames, cfg.epochs) == ("pointer-frozen", 100.0, 40, 1)
+    assert cfg.out == str(Path("o/runs/tiny/w2/k/seed1")) and cfg.store == str(Path("o/w2.zarr"))
+    assert e.data_dirs(Path("o")) == {"w": Path("o/w"), "w2": Path("o/w"), "t": Path("o/t")}
+    assert e.train_config(Path("o"), "w", e.arms[0], 0).train_frames is None
+    ov = EXPERIMENTS["objects-value-truth"]
+    assert ov.data_dirs(Path("o"))["ov-small-truth"] == Path("o/ov-small")
+    assert ov.worlds["ov-large-truth"].train_frames == 6000
+    assert ov.worlds["ov-small-truth"].pipeline == "synthetic-oracle"
 
 
 def test_the_cli_lists_and_shows(done):

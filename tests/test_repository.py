@@ -51,6 +51,43 @@ def test_readme_figures_link_to_studies():
         assert "docs/studies/" in row, f"headline row without its study: {row}"
 
 
+FIGURE = re.compile(r"(?<![\w.#/-])(\d+\.\d+|\d+(?=%))")        # a decimal, or a whole percentage
+STUDY_LINK = re.compile(r"\((docs/studies/[\w.-]+\.md)(?:#[\w-]+)?\)")
+
+
+def readme_figures() -> list[tuple[str, list[str], list[str]]]:
+    """(text, its figures, the studies it links) for each README paragraph and table row with a figure;
+    a table row without a link of its own takes the links of the paragraph before its table."""
+    out, before = [], []
+    for block in re.split(r"\n\s*\n", re.sub(r"```.*?```", "", README, flags=re.S)):
+        table = block.lstrip().startswith("|")
+        for unit in block.splitlines() if table else [block]:
+            links = STUDY_LINK.findall(unit) or (before if table else [])
+            figures = FIGURE.findall(STUDY_LINK.sub("", unit))
+            if figures:
+                out.append((unit, figures, links))
+        if not table:
+            before = STUDY_LINK.findall(block)
+    return out
+
+
+def test_readme_figures_are_in_their_studies():
+    """Each figure of the README (its tables, the headline rows, its paragraphs) is written in a study
+    the row or paragraph links: a figure is quoted, never computed or remembered."""
+    rows = readme_figures()
+    assert len(rows) >= 10
+    bad = []
+    for unit, figures, links in rows:
+        assert links, f"README figures without a study: {unit[:100]}"
+        text = " ".join((REPO / link).read_text() for link in set(links))
+        bad += [f"{f} ({unit[:60]}...)" for f in figures if f not in text]
+    assert not bad, "README figures not in the studies they link:\n" + "\n".join(bad)
+
+
+def test_the_figure_rule_can_fail():
+    assert FIGURE.findall("15.97 / 15.60, 53% and 1.97x; v2.0 docs/x.md") == ["15.97", "15.60", "53", "1.97"]
+
+
 @pytest.mark.parametrize("path", [p for p in tracked_files() if p.suffix == ".md"], ids=lambda p: p.name)
 def test_relative_links_resolve(path):
     text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)
