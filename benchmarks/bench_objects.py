@@ -247,9 +247,9 @@ def minisam_row(args) -> dict:
     """minisam at the generator's defaults on astronaut (512x512, as is): backend vs reference order."""
     from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
     from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions, mask_mode
-    from ga3ce_prep.registry_models import model_path
     from ga3ce_prep.testing.amg_reference import reference_generate
     from ga3ce_prep.testing.photos import photo
+    from ga3ce_prep.weights.registry import model_path
 
     rgb = photo("astronaut")
     opt = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
@@ -368,7 +368,7 @@ def reuse_rows(args) -> dict:
     from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
-    from ga3ce_prep.registry_models import model_path
+    from ga3ce_prep.weights.registry import model_path
 
     import reuse_sequence as rs
 

@@ -30,7 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "One HTML page of a trained run: curves, error CDF, per-scene and ablation bars, the paper's figures."),
     "predict": ("ga3ce_prep.predict:predict",
                 "Run the stages (and a checkpoint) on one RGB(-D) frame: v, g, objects; a drawing."),
-    "models": ("ga3ce_prep.models_cli:models",
+    "models": ("ga3ce_prep.weights.cli:models",
                "Fetch and list the registry models; check your folder of the paper's models."),
     "export-mobilesam": ("ga3ce_prep.estimators.cli:export_mobilesam",
                          "Export a trained MobileSAM checkpoint to the ONNX files the mobilesam backend reads."),

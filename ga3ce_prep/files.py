@@ -1,6 +1,6 @@
 """The SHA-256 of a file's bytes, the package's one way to name a file by its contents: the cache
 keys of stages that read model files (pipeline/run.py), the provenance of the models a store was
-made with, the registry's pinned models (registry_models.py), and the export commands' output."""
+made with, the registry's pinned models (weights/registry.py), and the export commands' output."""
 from __future__ import annotations
 
 import hashlib

@@ -11,7 +11,6 @@ import pytest
 import skimage.data
 from PIL import Image
 
-from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators.pose import blazepose as bp
 from ga3ce_prep.estimators.pose.blazepose_smpl import to_smpl_head30
@@ -28,6 +27,7 @@ from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.person import REST
 from ga3ce_prep.testing.worlds import SMALL
+from ga3ce_prep.weights import registry as registry_models
 
 L = bp.L
 

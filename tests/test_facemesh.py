@@ -5,7 +5,6 @@ import pickle
 import numpy as np
 import pytest
 
-from ga3ce_prep import registry_models
 from ga3ce_prep.errors import FrameError, ModelFileError
 from ga3ce_prep.estimators.runtime.crops import SquareRoi, apply_affine, crop, invert_affine, roi_affine
 from ga3ce_prep.estimators.runtime.ssd import decode_regressors, ssd_anchors, weighted_nms
@@ -22,6 +21,7 @@ from ga3ce_prep.skeleton import J
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.testing.photos import K_from_hfov, mirrored, photo, photo_frame
+from ga3ce_prep.weights import registry as registry_models
 
 # head boxes (x1, y1, x2, y2) around the heads, hair included, found once by eye on the 512x512 photos
 ASTRONAUT_HEAD = (150.0, 15.0, 300.0, 190.0)

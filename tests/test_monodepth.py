@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ga3ce_prep import registry_models
 from ga3ce_prep.errors import ConfigError, FrameError, ModelFileError
 from ga3ce_prep.estimators.depth.monodepth import (
     IMAGENET_MEAN,
@@ -29,6 +28,7 @@ from ga3ce_prep.store import open_store
 from ga3ce_prep.synthetic.truth import TruthReader
 from ga3ce_prep.testing.paper_models import linear_depth_model
 from ga3ce_prep.testing.photos import K_from_hfov, photo, photo_frame
+from ga3ce_prep.weights import registry as registry_models
 
 
 def _rgb(h: int, w: int, r, g=40, b=200) -> np.ndarray:

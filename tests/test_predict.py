@@ -123,7 +123,7 @@ def test_folder_real_pipeline_makes_a_store_from_a_recording(tmp_path):
     assert np.sign(s.frames["view"][0, 0]) != np.sign(s.frames["view"][1, 0])   # the mirror flips x
     assert np.isfinite(s.frames["pose"]).all(2).sum(1).min() >= 10
     np.testing.assert_allclose(s.frames["head_pos"][:, 2], 1.6, atol=1e-3)
-    from ga3ce_prep.registry_models import MODELS
+    from ga3ce_prep.weights.registry import MODELS
     models = s.attrs["stages"]["pose"]["models"]                # the registry files' pinned SHA-256
     assert sorted(models.values()) == sorted(MODELS[k][1].sha256 for k in ("pose_detection", "pose_landmark_full"))
     assert len(s.attrs["stages"]["view"]["models"]) == 2

@@ -4,8 +4,8 @@ import tarfile
 
 import pytest
 
-from ga3ce_prep import registry_models as rm
 from ga3ce_prep.errors import ModelFileError
+from ga3ce_prep.weights import registry as rm
 
 
 def _fake_tgz(members: dict[str, bytes]) -> bytes:

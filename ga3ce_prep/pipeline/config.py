@@ -29,6 +29,7 @@ from ..errors import ConfigError, ModelFileError
 from ..params import defaults, file_fields, load_yaml
 from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
+from ..weights.folder import FileStatus
 from .schema import RunParams
 
 
@@ -206,8 +207,6 @@ def models_check_hint(conf: PipelineConfig) -> str:
 def check_pipeline(conf: PipelineConfig, data_root: Path) -> list[Backend]:
     """Before any work: model files exist, backends are available, each backend's own check
     (data files readable). Returns the backend instances."""
-    from ..model_folder import missing_lines
-
     missing = missing_lines(conf, data_root)
     if missing:
         raise ModelFileError("\n  ".join([*missing, models_check_hint(conf)]))
@@ -217,3 +216,43 @@ def check_pipeline(conf: PipelineConfig, data_root: Path) -> list[Backend]:
         b.check()
         backends.append(b)
     return backends
+
+
+def stage_files(sc: StageConfig, data_root: Path) -> list[FileStatus]:
+    """Every model file the stage reads: its model-file parameters and the files its backend reads
+    beside them (`Backend.side_files`), not yet checked."""
+    fields = file_fields(backend_class(sc.stage, sc.backend).Params)
+    files = [FileStatus(f"stages.{sc.stage}.params.{name}", Path(path), sc.stage, fields[name].get("x-hint", ""))
+             for name, path in sc.model_files.items()]
+    for what, path in sc.make(data_root).side_files().items():
+        files.append(FileStatus(f"stages.{sc.stage} ({what})", Path(path), sc.stage, ""))
+    return files
+
+
+def missing_lines(conf: PipelineConfig, data_root: Path) -> list[str]:
+    """One line per missing model file of the pipeline: its key, its path and how to make it."""
+    return [f"{f.key}: model file {f.path} does not exist; {f.make}"
+            for sc in conf.stages.values() for f in stage_files(sc, data_root) if not f.path.is_file()]
+
+
+def check_stage(sc: StageConfig, data_root: Path) -> list[FileStatus]:
+    """The stage's model files with their status: missing; present while another file of the stage
+    is missing; else verified or fails, as the backend's own check says (before any run's work)."""
+    files = stage_files(sc, data_root)
+    if not files:
+        return []
+    for f in files:
+        f.status = "present" if f.path.is_file() else "missing"
+    if all(f.status == "present" for f in files):
+        try:
+            sc.make(data_root).check()
+            status, detail = "verified", ""
+        except Exception as e:  # whatever the check raises, the file fails it
+            status, detail = "failing", str(e)
+        for f in files:
+            f.status, f.detail = status, detail
+    else:
+        for f in files:
+            if f.status == "present":
+                f.detail = "not checked: " + ", ".join(g.path.name for g in files if g.status == "missing") + " missing"
+    return files

@@ -143,7 +143,7 @@ class Backend:
                                   f"batch method")
 
     def registry_keys(self) -> tuple[str, ...]:
-        """The registry models (`registry_models` keys) this backend runs: `check()` verifies their
+        """The registry models (`weights.registry` keys) this backend runs: `check()` verifies their
         SHA-256 and `provenance()` records it. Default: none."""
         return ()
 
@@ -158,7 +158,7 @@ class Backend:
         ModelFileError naming the pipeline key and the fix. Default: the registry models are
         fetched and have their pinned SHA-256."""
         if self.registry_keys():
-            from ..registry_models import require
+            from ..weights.registry import require
 
             for key in self.registry_keys():
                 require(key, f"stages.{self.stage}.backend {self.name}")
@@ -174,7 +174,7 @@ class Backend:
         registry models' pinned SHA-256."""
         if not self.registry_keys():
             return {}
-        from ..registry_models import MODELS, file_path
+        from ..weights.registry import MODELS, file_path
 
         return {"models": {str(file_path(k)): MODELS[k][1].sha256 for k in self.registry_keys()}}
 

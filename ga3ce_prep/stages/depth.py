@@ -160,7 +160,7 @@ class FastDepth(MonoDepth):
         return ("fastdepth",)
 
     def model_file(self) -> Path:
-        from ..registry_models import model_path
+        from ..weights.registry import model_path
 
         return model_path("fastdepth")
 

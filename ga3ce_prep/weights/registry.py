@@ -37,8 +37,8 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ModelFileError
-from .files import file_sha256
+from ..errors import ModelFileError
+from ..files import file_sha256
 
 NPM_REGISTRY = os.environ.get("GA3CE_NPM_REGISTRY", "https://registry.npmjs.org")
 
