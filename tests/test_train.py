@@ -15,7 +15,8 @@ from ga3ce_prep.testing.toy_store import ToyKnobs, toy_world, write_toy_store
 from ga3ce_prep.train import TrainConfig, ablate, evaluate, format_eval_table, train
 from ga3ce_prep.train import trainer as trainer_module
 from ga3ce_prep.train.ablate import default_rows
-from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint
+from ga3ce_prep.train.checkpoint import CheckpointError, load_checkpoint, run_design
+from ga3ce_prep.train.evaluate import beside
 from ga3ce_prep.train.trainer import run_done
 
 torch.set_num_threads(2)
@@ -228,11 +229,15 @@ def test_ablate_table(store, tmp_path):
     assert "The other designs" in t and "pointer-frozen (ours)" in t
     cfg = load_checkpoint(tmp_path / "abl" / "ours" / "seed0" / "best.pt")["config"]["model"]
     assert (cfg["method"], cfg["output"], cfg["pointer_g0"]) == ("pointer-frozen", "pointer", "frozen")
+    assert run_design(tmp_path / "abl" / "ours" / "seed0") == "pointer-frozen"   # one home for a run's design
+    assert run_design(tmp_path / "abl" / "full" / "seed0" / "best.pt") == "ga3ce" and run_design(tmp_path) is None
     assert (tmp_path / "abl" / "ablation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "abl" / "ablation.json").read_text())["rows"][1]["paper_gfie"] == 13.1
     # eval of the full row scores the no-objects row beside it (what the objects add), and says so
     full, noobj = (tmp_path / "abl" / n / "seed0" / "best.pt" for n in ("full", "no-objects"))
-    r = evaluate(store, full, split="test", cdf_path=None)
+    assert beside(full) == {"no_objects": noobj, "compare": {"ours": tmp_path / "abl" / "ours" / "seed0" / "best.pt"}}
+    assert "no_objects" not in evaluate(store, full, split="test", cdf_path=None).methods   # given, never searched
+    r = evaluate(store, full, split="test", cdf_path=None, **beside(full))
     assert r.no_objects_checkpoint == str(noobj)
     m = r.methods
     assert m["no_objects"].mae3d == pytest.approx(s["rows"][1]["mae3d"], abs=1e-9)

@@ -26,8 +26,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from ..model import ALIASES, METHODS, ModelConfig, model_label, resolve
+from ..model import ALIASES, METHODS, model_label, resolve
 from ..store import open_store
+from .checkpoint import run_design
 from .evaluate import evaluate
 from .plots import plot_ablation
 from .profiles import DatasetProfile
@@ -90,19 +91,10 @@ def row_label(ab: Ablation, base_model: Any) -> str:
     return ab.label
 
 
-def saved_design(run: Path) -> str | None:
-    """The fixed design of the model a run folder trained (its config.json; an alias saved before
-    the fixed names resolved to the design it named then), or None when there is none yet."""
-    path = run / "config.json"
-    if not path.is_file():
-        return None
-    return ModelConfig.from_dict(json.loads(path.read_text())["model"]).method
-
-
 def check_row_design(run: Path, ab: Ablation, want: str) -> None:
     """ConfigError when the run folder of a design or alias row holds another design than the row
     trains (the alias has moved on since it was trained)."""
-    have = saved_design(run)
+    have = run_design(run)
     if have is not None and have != want:
         raise ConfigError(f"{run} holds {have!r}, but the row {ab.name!r} trains {want!r}"
                           + (f" (the design {ab.name!r} names today)" if ab.name in ALIASES else "")

@@ -127,3 +127,21 @@ def build_model(ckpt: dict[str, Any]) -> GA3CE:
     model = GA3CE(ModelConfig.from_dict(ckpt["config"]["model"]))
     model.load_state_dict(ckpt["model"])
     return model.eval()
+
+
+def run_design(path: str | Path) -> str | None:
+    """The fixed design (model/methods.py) of the model a run trained: `path` is its run folder or
+    one of its checkpoints. Read from the run's config.json, else from the checkpoint (`best.pt` of a
+    folder); an alias saved before the fixed names is read as the design it named then. None when
+    the run has neither yet."""
+    import json
+
+    path = Path(path)
+    run, ckpt = (path, path / "best.pt") if path.is_dir() or not path.suffix else (path.parent, path)
+    if (run / "config.json").is_file():
+        saved = json.loads((run / "config.json").read_text())["model"]
+    elif ckpt.is_file():
+        saved = load_checkpoint(ckpt)["config"]["model"]
+    else:
+        return None
+    return ModelConfig.from_dict(saved).method

@@ -234,7 +234,7 @@ def evaluate(store, checkpoint, split, json_path, cdf, snap_cone, device, batch_
     r = run_eval(_checked_split(store, split), checkpoint, split=split, force=force, device=device,
                  batch_size=batch_size, snap_cone_deg=snap_cone, cdf_path=None if cdf == "none" else cdf,
                  json_path=json_path, threads=threads, frames=frames, data=data, gfm=gfm, gfm_batch_size=gfm_batch_size,
-                 no_objects=None if no_objects == "none" else no_objects)
+                 **_beside(checkpoint, no_objects))
     click.echo(format_eval_table(r, per_scene=not no_scenes))
     if r.cdf_png is not None:
         click.echo(f"\nCDF plot: {r.cdf_png}")
@@ -303,3 +303,14 @@ def report(run_dir, store, split, out, frames, data, device, threads, force):
     page = run_report(run_dir, store=store, split=split, out=out, frames=frames, data=data, device=device,
                       threads=threads, force=force)
     click.echo(f"report: {page}")
+
+
+def _beside(checkpoint: str, no_objects: str) -> dict[str, Any]:
+    """evaluate's no_objects and compare for `eval`: an ablate folder's other rows (`beside`), the
+    no-objects one as --no-objects says (auto: the folder's, none, or a checkpoint)."""
+    from .evaluate import beside
+
+    found = beside(checkpoint)
+    if no_objects != "auto":
+        found["no_objects"] = None if no_objects == "none" else no_objects
+    return found

@@ -7,9 +7,10 @@ style), front/back (true gaze z <= 0 is front; per window from its first frame u
 windows), median, and per scene 3D and 2D (GAFA: the paper's Table 3 columns, Office = `lab`,
 Courtyard = both courtyard sessions by frames, beside the paper's row). Methods: the checkpoint's
 model, named by its config's fixed design ("GA3CE (paper)", "pointer-frozen (ours)"; model/methods.py),
-the other trained models beside it in an `ablate` folder (the other designs, the model without objects), the view
-prior v, the head direction from the pose keypoints, and snap-to-object (v snapped to the nearest
-object within a cone whose half-angle is chosen on the validation split). The summary says plainly
+the other trained models it is given (`beside`: an `ablate` folder's other designs and its model
+without objects), the view prior v, the head direction from the pose keypoints, and
+snap-to-object (v snapped to the nearest object within a cone whose half-angle is chosen on the
+validation split). The summary says plainly
 whether the model beats each. Python API:
 `evaluate(store, checkpoint, split) -> EvalResult` (train/results.py; `.to_json()`: what `eval --json` writes).
 """
@@ -19,6 +20,7 @@ import json
 import logging
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,7 +31,7 @@ from ..model import ALIASES, GA3CE, METHODS, ModelConfig, model_label
 from ..skeleton import head_direction_from_pose
 from ..store import ContextStore, open_store
 from .baselines import choose_snap_cone, snap_to_object
-from .checkpoint import build_model, check_checkpoint, load_checkpoint
+from .checkpoint import build_model, check_checkpoint, load_checkpoint, run_design
 from .dataset import BucketBatchSampler, ContextDataset, store_fingerprint
 from .frameset import PROTOCOLS, scored_frames
 from .gfm import evaluate_gfm, format_gfm_table
@@ -74,11 +76,20 @@ def sibling_checkpoints(checkpoint: str | Path) -> dict[str, Path]:
     return {key: path for key, path in found.items() if path.is_file()}
 
 
-def _design_of(checkpoint: Path) -> str:
-    """The fixed design of a run folder's checkpoint, from the run's config.json when there."""
-    path = checkpoint.parent / "config.json"
-    saved = json.loads(path.read_text())["model"] if path.is_file() else load_checkpoint(checkpoint)["config"]["model"]
-    return ModelConfig.from_dict(saved).method
+def beside(checkpoint: str | Path) -> dict[str, Any]:
+    """The models an `ablate` folder trained beside `checkpoint`, as `evaluate`'s arguments:
+    {"no_objects": the no-objects row's best.pt or None, "compare": {row key: best.pt}, each other
+    design once (an alias row may hold the same design as a design row)}. Empty outside such a
+    folder. The command line's `eval` and `report` use it; evaluate itself searches nothing."""
+    siblings = sibling_checkpoints(checkpoint)
+    seen = {run_design(checkpoint)}
+    compare: dict[str, str | Path] = {}
+    for key, sibling in siblings.items():
+        design = run_design(sibling)
+        if key != "no_objects" and design not in seen:
+            seen.add(design)
+            compare[key] = sibling
+    return {"no_objects": siblings.get("no_objects"), "compare": compare}
 
 
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
@@ -101,7 +112,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
              snap_cone_deg: float | None = None, cdf_path: str | Path | None = "auto",
              json_path: str | Path | None = None, threads: int = 2, frames: str = "auto",
              data: str | Path | None = None, gfm: str | Path | None = None, gfm_batch_size: int = 16,
-             no_objects: str | Path | None = "auto", compare: dict[str, str | Path] | None = None) -> EvalResult:
+             no_objects: str | Path | None = None, compare: dict[str, str | Path] | None = None) -> EvalResult:
     """Metrics of a checkpoint and the baselines on `split` of `store`.
 
     force: evaluate even if the checkpoint was trained on another store; implied when the store has
@@ -113,9 +124,9 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     dataset's root when it is not where the store's provenance says. gfm: GFIE's checkpoint, to add
     GFIE's Table 1 columns (train/gfm.py: GFIE's network on the frames' images and depth,
     gfm_batch_size frames per pass). no_objects: a checkpoint of the model without objects to score
-    beside this one (method "no_objects"), "auto" = the ablate folder's (`sibling_checkpoints`),
-    None = none. compare: other checkpoints to score beside it, {key: path}; None = the ablate
-    folder's other designs ("ga3ce", "ours", ...; each design once) when there. Returns an EvalResult
+    beside this one (method "no_objects"), None = none. compare: other checkpoints to score beside
+    it, {key: path} ("ours": its label names the design). `beside(checkpoint)` gives both for an
+    ablate folder's full row. Returns an EvalResult
     (train/results.py): store, split, checkpoint, epoch, labels {method: its name in tables},
     n_frames (scored), frames (frameset.ScoredFrames: protocol, expected, scored, unscored {reason:
     [ids]}), head_sources, head_fallback_frames, snap_cone_deg, methods {name: MethodMetrics},
@@ -144,16 +155,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     preds = {"model": predict(model, ds, batch_size, device, ckpt["config"].get("n_max"))}
     config = ModelConfig.from_dict(ckpt["config"]["model"])
     labels = {"model": model_label(config)}
-    siblings = sibling_checkpoints(checkpoint)
-    others: dict[str, str | Path] = dict(compare) if compare is not None else {}
-    if compare is None:   # each other design once (an alias row may hold the same design as a design row)
-        seen = {config.method}
-        for key, sibling in siblings.items():
-            design = _design_of(sibling) if key != "no_objects" else config.method   # no_objects: below
-            if design not in seen:
-                seen.add(design)
-                others[key] = sibling
-    no_objects = siblings.get("no_objects") if no_objects == "auto" else no_objects
+    others: dict[str, str | Path] = dict(compare or {})
     if no_objects is not None:
         others["no_objects"] = no_objects
     for key, path in others.items():

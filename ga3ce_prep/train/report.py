@@ -24,7 +24,7 @@ from ..errors import Ga3ceError
 from ..store import open_store
 from .checkpoint import build_model, load_checkpoint
 from .dataset import ContextDataset
-from .evaluate import evaluate, format_eval_table
+from .evaluate import beside, evaluate, format_eval_table
 from .figures import make_figures
 from .plots import plot_ablation, plot_curves, plot_per_scene
 
@@ -114,7 +114,7 @@ def report(run_dir: str | Path, store: str | Path | None = None, split: str = "t
 
     checkpoint = run / "best.pt"
     result = evaluate(st, checkpoint, split=split, force=force, device=device, cdf_path=out / "cdf.png",
-                      json_path=out / "eval.json", threads=threads)
+                      json_path=out / "eval.json", threads=threads, **beside(checkpoint))
     history = read_history(run / "history.csv")
     ckpt = load_checkpoint(checkpoint)
     figs = make_figures(build_model(ckpt).to(device), ContextDataset(st, split), out, frames,
