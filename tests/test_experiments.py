@@ -112,3 +112,19 @@ def test_the_cli_lists_and_shows(done):
     assert res.exit_code == 0 and "paper-tables" in res.output and "60 rooms x 5 sessions x 20 frames" in res.output
     res = CliRunner().invoke(experiment_cli, ["show", os.fspath(out / "runs" / "tiny" / "results.json")])
     assert res.exit_code == 0 and "scored" in res.output and "pointer-frozen (ours)" in res.output
+
+
+def test_a_dataset_the_old_demo_wrote_is_reused(tmp_path):
+    """An out/ folder from before worlds were objects: its demo-params.json names the same world, so
+    the dataset is kept (and stamped), never refused or written again; another world's is refused."""
+    demo = demo_experiment()
+    data = tmp_path / "synthetic"
+    data.mkdir()
+    (data / "truth.h5").write_text("")
+    (data / "demo-params.json").write_text(json.dumps({"fmt": "gfie", "scenes": 48, "sessions_per_room": 4,
+                                                       "frames_per_scene": 15, "seed": 0}))
+    assert demo.worlds["synthetic"].ensure_data(data) == data
+    assert json.loads((data / "world.json").read_text()) == demo.worlds["synthetic"].synth_params()
+    (data / "world.json").unlink()
+    with pytest.raises(Exception, match="other contents"):
+        demo_experiment(seed=1).worlds["synthetic"].ensure_data(data)

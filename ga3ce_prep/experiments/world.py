@@ -61,6 +61,9 @@ class World:
         stamp = data / "world.json"
         if stamp.is_file() and json.loads(stamp.read_text()) == self.synth_params() and (data / "truth.h5").is_file():
             return data
+        if self._written_by_old_demo(data):
+            stamp.write_text(json.dumps(self.synth_params()))
+            return data
         if data.exists() and any(data.iterdir()):
             raise Ga3ceError(f"{data} exists with other contents than the world {self.describe()}: remove it or "
                              "choose another output folder")
@@ -74,6 +77,16 @@ class World:
                  workers=os.cpu_count() or 1)   # the same files with any worker count
         stamp.write_text(json.dumps(self.synth_params()))
         return data
+
+    def _written_by_old_demo(self, data: Path) -> bool:
+        """Whether `data` is this world as `make demo` wrote it before worlds were objects (its
+        demo-params.json: the same format, sizes, seed and preset, at 640 pixels, default knobs)."""
+        old = data / "demo-params.json"
+        if not (old.is_file() and (data / "truth.h5").is_file()) or self.width != 640 or self.knobs:
+            return False
+        want = {k: v for k, v in self.synth_params().items() if k not in ("width", "knobs")}
+        have = {"preset": None, "sessions_per_room": 1, **json.loads(old.read_text())}
+        return have == want
 
     def ensure(self, data: Path, store: Path, workers: int | None = None, progress: bool = True) -> Path:
         """The store at `store` (the dataset at `data` first, each made unless it is there); returns
