@@ -25,6 +25,20 @@ def test_bundled_pipelines_are_valid(name, tmp_path):
 
 
 
+@pytest.mark.parametrize("name", pipeline_names())
+def test_bundled_pipelines_state_no_default(name):
+    """A bundled pipeline states only what differs from its backends' defaults (their Params), so
+    moving a default is one edit in one file, which every pipeline follows."""
+    from ga3ce_prep.params import defaults
+    from ga3ce_prep.stages import backend_class
+
+    raw = yaml.safe_load(pipeline_text(name))
+    restated = [f"stages.{stage}.params.{k}: {v!r}" for stage, sc in raw["stages"].items()
+                for d in [defaults(backend_class(stage, sc["backend"]).Params)]
+                for k, v in (sc.get("params") or {}).items() if k in d and d[k] == v]
+    assert not restated, f"{name} restates defaults: {restated}"
+
+
 def test_bundled_names_resolve_from_the_package_and_a_path_still_works(tmp_path, monkeypatch):
     import ga3ce_prep
     from ga3ce_prep.bundled import name_of
@@ -86,7 +100,8 @@ def test_missing_stage_and_bad_yaml(tmp_path):
 def test_off_and_on_stay_words_in_files_and_overrides(tmp_path):
     # YAML 1.1 reads off/on/yes/no as booleans, which the enums `reuse: off` and `io_binding: on` refuse
     text = pipeline_text("synthetic-minisam")
-    text = text.replace("decoder_mode: fast", "decoder_mode: fast\n      reuse: off\n      io_binding: on")
+    assert "      registry: minisam" in text
+    text = text.replace("      registry: minisam", "      reuse: off\n      io_binding: on\n      registry: minisam")
     (tmp_path / "p.yaml").write_text(text)
     params = load_pipeline(tmp_path / "p.yaml", tmp_path, check_files=False).stages["objects"].params
     assert (params["reuse"], params["io_binding"]) == ("off", "on")
