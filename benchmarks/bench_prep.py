@@ -41,29 +41,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread ev
 import click
 import numpy as np
 
+from ga3ce_prep.testing.worlds import BENCH_WIDTH, bench_world
+
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
-WIDTH = 640
-FRAMES_PER_SCENE = 4
-
-
-def world(base: Path, n_frames: int) -> Path:
-    """A GFIE-format synthetic world of n_frames (4 per scene) at 640x480, generated once."""
-    from ga3ce_prep.synthetic import generate
-
-    root = base / "world"
-    stamp = root / ".bench"
-    want = f"{n_frames} {WIDTH} {FRAMES_PER_SCENE} seed 11"
-    if stamp.is_file() and stamp.read_text() == want:
-        return root
-    shutil.rmtree(root, ignore_errors=True)
-    t = time.perf_counter()
-    generate("gfie", root, scenes=-(-n_frames // FRAMES_PER_SCENE), frames_per_scene=FRAMES_PER_SCENE, seed=11,
-             width=WIDTH, progress=True)
-    stamp.write_text(want)
-    print(f"generated {n_frames} frames in {time.perf_counter() - t:.0f} s", flush=True)
-    return root
 
 
 def geometry_per_core(data: Path, n: int) -> dict:
@@ -286,8 +268,8 @@ def main(frames, json_out, memory_child):
     base = ROOT / "out" / "bench"
     base.mkdir(parents=True, exist_ok=True)
     with cpu_lock():
-        data = world(base, 4 * frames)
-        res = {"conditions": {"width": WIDTH, "height": 480, "cpus": os.cpu_count(),
+        data = bench_world(base, 4 * frames)
+        res = {"conditions": {"width": BENCH_WIDTH, "height": 480, "cpus": os.cpu_count(),
                               "omp_threads": os.environ.get("OMP_NUM_THREADS"),
                               "note": "shared 2-core machine; provisional"}}
         print("1/7 geometry stages per core ...", flush=True)
@@ -310,7 +292,7 @@ def main(frames, json_out, memory_child):
     ms = g["ms_per_frame"]
     sizes = ", ".join(f"{k} {100 * v['fraction']:.0f}% of {v['of']}" for k, v in r["by_mask_size"].items())
     print("\n"
-          f"ga3ce-prep preprocessing benchmark, synthetic GFIE world {WIDTH}x480 (provisional: shared machine)\n"
+          f"ga3ce-prep preprocessing benchmark, synthetic GFIE world {BENCH_WIDTH}x480 (provisional: shared machine)\n"
           f"  geometry stages, 1 thread      {g['frames_per_s']:7.1f} frames/s  (target >= 100)  "
           f"[load {ms['load']:.2f} + complete {ms['complete']:.2f}\n"
           f"                                                      + medians {ms['medians']:.2f} "

@@ -27,7 +27,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # per-core figures: one thread ev
 
 import click
 
-from bench_prep import world
+from ga3ce_prep.testing.worlds import bench_world
+
 from cpu_lock import cpu_lock
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -70,7 +71,7 @@ def main(frames, sam_frames, json_out):
     base = ROOT / "out" / "bench"
     base.mkdir(parents=True, exist_ok=True)
     with cpu_lock():
-        data = world(base, frames)
+        data = bench_world(base, frames)
         res = {"conditions": {"width": 640, "height": 480, "cpus": os.cpu_count(), "frames": frames,
                               "note": "shared 2-core machine; provisional"}}
         print("1/4 1 local worker ...", flush=True)

@@ -12,33 +12,32 @@ import os
 for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ[_v] = "1"
 
-import argparse  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import click  # noqa: E402
 import cv2  # noqa: E402
 
 from ga3ce_prep.synthetic import generate  # noqa: E402
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--formats", default="gfie,cad120,gafa")
-    ap.add_argument("--scenes", type=int, default=4)
-    ap.add_argument("--frames-per-scene", type=int, default=25)
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=480, help="GFIE/CAD-120 height (GAFA keeps its aspect ratio)")
-    args = ap.parse_args()
+@click.command(help=__doc__)
+@click.option("--formats", default="gfie,cad120,gafa", show_default=True)
+@click.option("--scenes", default=4, show_default=True)
+@click.option("--frames-per-scene", default=25, show_default=True)
+@click.option("--width", default=640, show_default=True)
+@click.option("--height", default=480, show_default=True, help="GFIE/CAD-120 height (GAFA keeps its aspect ratio)")
+def main(formats: str, scenes: int, frames_per_scene: int, width: int, height: int) -> None:
     cv2.setNumThreads(1)
-    print(f"synthetic world generation, {args.width} wide, {args.scenes} scenes x {args.frames_per_scene} steps, "
+    print(f"synthetic world generation, {width} wide, {scenes} scenes x {frames_per_scene} steps, "
           f"one core")
     rows = []
-    for fmt in args.formats.split(","):
+    for fmt in formats.split(","):
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            rep = generate(fmt, Path(tmp) / fmt, args.scenes, args.frames_per_scene, seed=0, width=args.width,
-                           height=None if fmt == "gafa" else args.height, progress=False)
+            rep = generate(fmt, Path(tmp) / fmt, scenes, frames_per_scene, seed=0, width=width,
+                           height=None if fmt == "gafa" else height, progress=False)
             wall = time.perf_counter() - t0
         fps = rep.frames / wall
         rows.append((fmt, rep.frames, wall, fps))

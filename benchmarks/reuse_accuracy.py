@@ -49,12 +49,12 @@ from tqdm import tqdm
 
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.store import open_store
+from ga3ce_prep.testing.reuse_sequence import AGREE_M, within
 from ga3ce_prep.train import TrainConfig
 from ga3ce_prep.train.evaluate import evaluate
 from ga3ce_prep.train.trainer import ensure_trained
 
 from cpu_lock import CLI, cpu_lock, run_locked
-from reuse_sequence import AGREE_M, within
 
 ROOT = Path(__file__).resolve().parent.parent
 MAE_TARGET = 0.2   # degrees

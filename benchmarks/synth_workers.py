@@ -7,9 +7,10 @@ Usage: python benchmarks/synth_workers.py OUT_FOLDER   (about 8 minutes on 2 cor
 """
 import hashlib
 import shutil
-import sys
 import time
 from pathlib import Path
+
+import click
 
 from ga3ce_prep.synthetic import generate
 
@@ -34,11 +35,16 @@ def digest(folder: Path) -> str:
     return h.hexdigest()[:16]
 
 
-if __name__ == "__main__":   # the worker processes are spawned: they import this file
-    root = Path(sys.argv[1])
+@click.command(help=__doc__)
+@click.argument("out_folder", type=click.Path(file_okay=False, path_type=Path))
+def main(out_folder: Path) -> None:
     for rep in range(2):
         for w in (1, 2):
-            out = root / f"w{w}"
+            out = out_folder / f"w{w}"
             shutil.rmtree(out, ignore_errors=True)
             s = world(out, w)
             print(f"round {rep} workers {w}: {s:.1f} s  files {digest(out)}", flush=True)
+
+
+if __name__ == "__main__":   # the worker processes are spawned: they import this file
+    main()

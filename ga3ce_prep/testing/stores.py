@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,3 +33,18 @@ def store_digests(path: str | Path) -> dict[str, str]:
     fs, root = fsspec.core.url_to_fs(str(path))
     root = root.rstrip("/")
     return {f[len(root) + 1:]: hashlib.sha256(fs.cat_file(f)).hexdigest() for f in sorted(fs.find(root))}
+
+
+def object_distances(truth: Any, store: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Per object of `truth` (a store of the truth's objects, or any store): the distance (m) to the
+    nearest object position `store` holds in the same frame (inf if none), and its mask area (px):
+    how near a segmenter's positions are to the true objects (`make bench-medians`,
+    `make bench-objects-quality`)."""
+    idx = {fid: i for i, fid in enumerate(store.frames["id"])}
+    d, area = [], []
+    for j, fid in enumerate(truth.frames["id"]):
+        T = truth.objects_of(j)
+        G = store.objects_of(idx[fid]) if fid in idx else np.zeros((0, 3))
+        d.append(np.linalg.norm(T[:, None] - G[None], axis=-1).min(1) if len(G) else np.full(len(T), np.inf))
+        area.append(truth.objects["area"][truth.object_slice(j)])
+    return np.concatenate(d), np.concatenate(area)

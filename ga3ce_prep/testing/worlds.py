@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -66,4 +67,28 @@ def as_folder(world: Path, root: Path) -> Path:
         csv.writer(f).writerows([["name", "x1", "y1", "x2", "y2", "split"], *rows])
     truth_file(world, root / "pose.npz", "pose", ids=folder_name)
     truth_file(world, root / "view.npz", "view", ids=folder_name)
+    return root
+
+
+# the preprocessing benchmarks' world: 640x480 frames, 4 per scene
+BENCH_WIDTH = 640
+BENCH_FRAMES_PER_SCENE = 4
+
+
+def bench_world(base: Path, n_frames: int) -> Path:
+    """A GFIE-format synthetic world of n_frames (4 per scene) at 640x480, seed 11, generated once into
+    base/world (the preprocessing benchmarks': `make bench-prep`, `make bench-scale`)."""
+    from ga3ce_prep.synthetic import generate
+
+    root = base / "world"
+    stamp = root / ".bench"
+    want = f"{n_frames} {BENCH_WIDTH} {BENCH_FRAMES_PER_SCENE} seed 11"
+    if stamp.is_file() and stamp.read_text() == want:
+        return root
+    shutil.rmtree(root, ignore_errors=True)
+    t = time.perf_counter()
+    generate("gfie", root, scenes=-(-n_frames // BENCH_FRAMES_PER_SCENE), frames_per_scene=BENCH_FRAMES_PER_SCENE,
+             seed=11, width=BENCH_WIDTH, progress=True)
+    stamp.write_text(want)
+    print(f"generated {n_frames} frames in {time.perf_counter() - t:.0f} s", flush=True)
     return root

@@ -1,8 +1,9 @@
 """Exact vs reuse (`reuse: sequence`) segment-everything over one synthetic camera sequence, for
-`make bench-objects`: seconds per frame of each (mean over the sequence, key frame included), the
-share of prompts decoded per frame in reuse mode, the key frames, and the agreement of P_object
-(per-mask median 3D points of the masks, measured depth): the share of exact objects with a reuse
-object within 2 cm and the reverse, pooled over the frames.
+`make bench-objects` (benchmarks/bench_objects.py) and benchmarks/reuse_accuracy.py: seconds per frame of
+each (mean over the sequence, key frame included), the share of prompts decoded per frame in reuse
+mode, the key frames, and the agreement of P_object (per-mask median 3D points of the masks,
+measured depth): the share of exact objects with a reuse object within 2 cm and the reverse, pooled
+over the frames.
 
 What agreement to expect: the exact generator against itself on every `noise_every`-th frame with
 fresh sensor noise added (Gaussian, std sqrt(2) x the world's RGB noise: the size of the noise
@@ -67,14 +68,14 @@ def compare(seg, frames: list, settings: dict, noise_every: int = NOISE_EVERY) -
     floor = {}
     if noise_every and any(len(e) for e in exact):
         rng, std = np.random.default_rng(0), np.sqrt(2.0) * RenderConfig().rgb_noise
-        e_in_n, n_in_e = [], []
+        e_parts, n_parts = [], []
         for i in range(0, len(data), noise_every):
             f, rgb, depth = data[i]
             noisy = np.clip(np.rint(rgb + rng.normal(0.0, std, rgb.shape)), 0, 255).astype(np.uint8)
             x = objects(seg.segment(noisy, out_size=depth.shape), f, depth)
-            e_in_n.append(within(exact[i], x, AGREE_M))
-            n_in_e.append(within(x, exact[i], AGREE_M))
-        e_in_n, n_in_e = np.concatenate(e_in_n), np.concatenate(n_in_e)
+            e_parts.append(within(exact[i], x, AGREE_M))
+            n_parts.append(within(x, exact[i], AGREE_M))
+        e_in_n, n_in_e = np.concatenate(e_parts), np.concatenate(n_parts)
         floor = {"noise_objects": int(len(e_in_n)), "noisy_objects": int(len(n_in_e)),
                  "exact_with_noisy_within_2cm": round(float(e_in_n.mean()), 4) if len(e_in_n) else None,
                  "noisy_with_exact_within_2cm": round(float(n_in_e.mean()), 4) if len(n_in_e) else None}
