@@ -61,8 +61,13 @@ def test_bundled_names_resolve_from_the_package_and_a_path_still_works(tmp_path,
 
 def test_defaults_are_filled_in_and_data_paths_resolved(tmp_path):
     conf = load_pipeline("synthetic", tmp_path, check_files=False)
-    assert conf.stages["head"].params == {"window_fracs": [0.2, 0.5, 1.0], "min_points": 3,
-                                          "fallbacks": ["pose_depth", "pose", "completed"], "joint_depth_offset": 0.05}
+    from ga3ce_prep.stages import backend_class
+
+    head = conf.stages["head"]
+    assert type(head.p) is backend_class("head", "depth").Params          # typed once, at load
+    assert head.params == {"window_fracs": (0.2, 0.5, 1.0), "min_points": 3,
+                           "fallbacks": ("pose_depth", "pose", "completed"), "joint_depth_offset": 0.05}
+    assert head.make(tmp_path).p is head.p                                  # the backend gets them as they are
     assert conf.stages["view"].params["truth"] == tmp_path.resolve() / "truth.h5"
     assert conf.stages["view"].data_files == {"truth": tmp_path.resolve() / "truth.h5"}
     assert conf.config["stages"]["depth"]["params"]["keep_valid"] is True

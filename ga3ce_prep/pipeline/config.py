@@ -18,7 +18,7 @@ import copy
 import hashlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,7 @@ import yaml
 
 from .. import bundled
 from ..errors import ConfigError, ModelFileError
-from ..params import defaults, file_fields, load_yaml
+from ..params import defaults, file_fields, from_dict, load_yaml
 from ..stages import STAGES, backend_class, upstream_of
 from ..stages.base import Backend, BackendContext
 from ..weights.folder import FileStatus
@@ -35,18 +35,24 @@ from .schema import RunParams
 
 @dataclass
 class StageConfig:
-    """One stage as configured: backend name, full parameters (defaults filled, files resolved),
-    and which parameters name data files and model files."""
+    """One stage as configured: backend name, its parameters as the backend's typed `Params`
+    (defaults filled, files resolved; built once, here, and handed to the backend as they are), the
+    same as a plain mapping, and which parameters name data files and model files."""
 
     stage: str
     backend: str
-    params: dict[str, Any]
+    p: Any                                   # the backend's Params instance
     data_files: dict[str, Path] = field(default_factory=dict)
     model_files: dict[str, Path] = field(default_factory=dict)
 
+    @property
+    def params(self) -> dict[str, Any]:
+        """The parameters as a mapping (field name -> value; files as absolute Paths)."""
+        return {f.name: getattr(self.p, f.name) for f in fields(self.p)}
+
     def make(self, data_root: Path) -> Backend:
         """An instance of the backend (imports its module)."""
-        return backend_class(self.stage, self.backend)(self.params, BackendContext(Path(data_root)))
+        return backend_class(self.stage, self.backend)(self.p, BackendContext(Path(data_root)))
 
 
 @dataclass
@@ -186,7 +192,8 @@ def load_pipeline(pipeline: str | Path | dict[str, Any], data_root: str | Path,
                 if "{" not in str(params[name]):  # the effective configuration records it absolute
                     params[name] = str(p)
                 (model_files if kind == "model" else data_files)[name] = p
-        stages[stage] = StageConfig(stage, backend, resolved, data_files, model_files)
+        stages[stage] = StageConfig(stage, backend, from_dict(cls, resolved, f"stages.{stage}.params"), data_files,
+                                    model_files)
     conf = PipelineConfig(
         name=cfg["name"], file=where, sha256=hashlib.sha256(text).hexdigest(),
         dataset_format=cfg["dataset"]["format"], dataset_options=dict(cfg["dataset"]["options"]),

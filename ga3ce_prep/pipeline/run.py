@@ -38,7 +38,6 @@ from .. import __version__
 from ..errors import ConfigError, DatasetFormatError, EnvironmentProblem, StoreError, environment_problem
 from ..files import file_sha256
 from ..frames import FrameRef, Window, frame_windows
-from ..params import from_dict
 from ..stages import STAGES, backend_class, dependency_order
 from ..store import SCHEMA_VERSION, SOURCE_STAGES, UNFINISHED, validate_store_attrs
 from ..synthetic.truth import world_provenance
@@ -122,7 +121,7 @@ def stage_identity(conf: PipelineConfig, stage: str) -> dict[str, Any]:
     sc = conf.stages[stage]
     cls = backend_class(stage, sc.backend)
     params = {k: v for k, v in conf.config["stages"][stage].get("params", {}).items()}
-    version = cls.cache_version(from_dict(cls.Params, sc.params, f"stages.{stage}.params"))
+    version = cls.cache_version(sc.p)
     return {"stage": stage, "backend": sc.backend, "version": version, "params": params,
             "data_files": {k: file_identity(p) for k, p in sorted(sc.data_files.items())},
             "models": {k: file_sha256(p) for k, p in sorted(sc.model_files.items())}}

@@ -118,8 +118,11 @@ class Backend:
         `version`, plus the counter of each layer that `p` switches on (module docstring)."""
         return cls.version
 
-    def __init__(self, params: dict[str, Any], ctx: BackendContext):
-        self.p = from_dict(self.Params, params, f"stages.{self.stage}.params")
+    def __init__(self, params: Any, ctx: BackendContext):
+        """params: this backend's `Params` (what a loaded pipeline's StageConfig holds), or a mapping
+        of them (checked and converted here, each error naming its `stages.<stage>.params` key)."""
+        typed = isinstance(params, self.Params)
+        self.p: Any = params if typed else from_dict(self.Params, params, f"stages.{self.stage}.params")
         self.ctx = ctx
 
     def start_shard(self) -> None:
