@@ -1,6 +1,7 @@
 """The repository as a stranger meets it: a short README whose file map is complete and whose
 figures link to their studies, relative links that resolve, and no file that names a build
 machine's paths, the team's sibling folder or an issue tracker's numbers."""
+import json
 import re
 import subprocess
 from pathlib import Path
@@ -71,17 +72,41 @@ def readme_figures() -> list[tuple[str, list[str], list[str]]]:
     return out
 
 
+RESULTS_LINK = re.compile(r"\]\((results/[\w.-]+\.json)\)")
+
+
+def study_text(link: str) -> str:
+    """A study page's text and, for each results file it links (docs/studies/results/*.json, an
+    experiment's results), that file's tables as `experiment show` prints them."""
+    from ga3ce_prep.experiments import format_results
+
+    page = REPO / link
+    text = page.read_text()
+    for rel in RESULTS_LINK.findall(text):
+        text += "\n" + format_results(json.loads((page.parent / rel).read_text()))
+    return text
+
+
 def test_readme_figures_are_in_their_studies():
     """Each figure of the README (its tables, the headline rows, its paragraphs) is written in a study
-    the row or paragraph links: a figure is quoted, never computed or remembered."""
+    the row or paragraph links, or in a results file that study links: a figure is quoted, never
+    computed or remembered."""
     rows = readme_figures()
     assert len(rows) >= 10
     bad = []
     for unit, figures, links in rows:
         assert links, f"README figures without a study: {unit[:100]}"
-        text = " ".join((REPO / link).read_text() for link in set(links))
+        text = " ".join(study_text(link) for link in set(links))
         bad += [f"{f} ({unit[:60]}...)" for f in figures if f not in text]
     assert not bad, "README figures not in the studies they link:\n" + "\n".join(bad)
+
+
+def test_results_files_that_studies_link_are_experiments():
+    for page in sorted((REPO / "docs" / "studies").glob("*.md")):
+        for rel in RESULTS_LINK.findall(page.read_text()):
+            r = json.loads((page.parent / rel).read_text())
+            assert {"experiment", "code", "machine", "worlds", "arms", "scores"} <= set(r), (page.name, rel)
+            assert r["code"]["commit"] and not r["code"]["dirty"], f"{rel}: results of uncommitted code"
 
 
 def test_the_figure_rule_can_fail():

@@ -154,6 +154,7 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
     from ..train.trainer import ensure_trained
 
     out = Path(out)
+    conditions = {"code": code(), "machine": machine()}   # of the call's start: what trains is this code
     stores = stores or exp.stores(out, workers=workers, progress=progress)
     scores: list[dict[str, Any]] = []
     arms: dict[str, dict[str, Any]] = {}
@@ -178,7 +179,7 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
                                    "run": str(run), **s})
     results = {"experiment": exp.name, "question": exp.question, "split": exp.split, "seeds": list(exp.seeds),
                "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "seconds": round(time.perf_counter() - t0, 1),
-               "code": code(), "machine": machine(),
+               **conditions,
                "worlds": {n: _world_record(w, stores[n]) for n, w in exp.worlds.items()},
                "transfer": {n: _world_record(w, stores[n]) for n, w in exp.transfer.items()},
                "arms": arms, "scores": scores}
