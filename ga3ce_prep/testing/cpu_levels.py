@@ -27,20 +27,23 @@ def levels_here() -> list[str]:
 
 
 def _numpy_features_above(level: str) -> list[str]:
-    """numpy's dispatch targets available here that a CPU of `level` would lack (names as this numpy
-    spells them: X86_V3 / X86_V4 in numpy 2.4, AVX2 / AVX512F / AVX512_SKX before)."""
+    """numpy's dispatch targets (as this numpy's build names them: X86_V3 / X86_V4 in numpy 2.4,
+    AVX2 / AVX512F / AVX512_SKX before) that a CPU of `level` would lack, after those this process
+    was already told to leave off (its own NPY_DISABLE_CPU_FEATURES: a child never runs above its
+    parent). Named from the build's list, not from what this process has on, so the answer does
+    not depend on the caller's own cap."""
     import importlib
+    import os
 
     try:
         um = importlib.import_module("numpy._core._multiarray_umath")
     except ImportError:  # numpy 1.x
         um = importlib.import_module("numpy.core._multiarray_umath")
-    found = [f for f in um.__cpu_dispatch__ if um.__cpu_features__.get(f)]
-    if level == "default":
-        return found
-    if level == "avx2":
-        return [f for f in found if "512" in f or f == "X86_V4"]
-    return []
+    targets = list(um.__cpu_dispatch__)
+    off = (targets if level == "default" else
+           [f for f in targets if "512" in f or f == "X86_V4"] if level == "avx2" else [])
+    inherited = os.environ.get("NPY_DISABLE_CPU_FEATURES", "").replace(",", " ").split()
+    return list(dict.fromkeys([*inherited, *off]))
 
 
 def level_env(level: str) -> dict[str, str]:
