@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -132,6 +133,21 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     return score
 
 
+def portable(value: Any, out: Path) -> Any:
+    """`value` (a results record) with every absolute path under `out` written relative to it, and
+    every one inside this package relative to the package's folder ("ga3ce_prep/pipelines/..."),
+    so a results file reads the same on any machine and can be kept beside a study."""
+    if isinstance(value, dict):
+        return {k: portable(v, out) for k, v in value.items()}
+    if isinstance(value, list):
+        return [portable(v, out) for v in value]
+    if isinstance(value, str) and value.startswith("/"):
+        for root in (Path(out).resolve(), Path(__file__).resolve().parents[2]):
+            if value == str(root) or value.startswith(str(root) + "/"):
+                return os.path.relpath(value, root)
+    return value
+
+
 def _world_record(world: World, store: Path) -> dict[str, Any]:
     """A world's declaration and what its store says it was made with (pipeline, stage backends
     and parameters: the segmenter and the cues' noise)."""
@@ -183,6 +199,7 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
                "worlds": {n: _world_record(w, stores[n]) for n, w in exp.worlds.items()},
                "transfer": {n: _world_record(w, stores[n]) for n, w in exp.transfer.items()},
                "arms": arms, "scores": scores}
+    results = portable(results, out)   # paths relative to OUT: the file reads the same anywhere
     path = exp.results_path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(results, indent=2, default=float))
