@@ -51,6 +51,7 @@ BACKENDS: dict[str, str] = {
     "head/depth": "ga3ce_prep.stages.head:DepthHead",
     "pose/precomputed": "ga3ce_prep.stages.pose:PrecomputedPose",
     "pose/oracle": "ga3ce_prep.stages.pose:OraclePose",
+    "pose/oracle-articulated": "ga3ce_prep.stages.pose:ArticulatedOraclePose",
     "pose/blazepose": "ga3ce_prep.stages.pose:BlazePose",
     "pose/onnx": "ga3ce_prep.stages.pose_crop:OnnxPose",
     "pose/torchscript": "ga3ce_prep.stages.pose_crop:TorchScriptPose",

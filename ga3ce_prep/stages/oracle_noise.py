@@ -22,6 +22,16 @@ Pose noise (`noisy_pose`): per joint isotropic Gaussian offsets (sigma_face on t
 joints, as RGB pose estimators are least accurate there, sigma_body elsewhere), then a per-frame
 scale about the camera centre, exp(N(log scale_bias, scale_sigma)), which is how an RGB-only
 estimator's depth ambiguity shows, and a per-frame offset N(0, offset_sigma^2 I).
+
+Articulated pose noise (`articulated_pose`): the errors of a 3D pose estimator are a skeleton's, not
+independent per joint. Every joint's bone (from its parent, skeleton.PARENTS) turns by a small
+random rotation, axis-angle N(0, bone_sigma^2 I) radians, the root's turning the whole body; the
+rotations compose down the chains (forward kinematics), so bone lengths are kept and a limb's error
+grows along it; the six face joints turn together by one head rotation N(0, head_sigma^2 I) about
+the head joint, so the face moves as one. The root then moves by N(0, ray_sigma^2) along the camera
+ray (the depth ambiguity) plus N(0, lateral_sigma^2 I). Each draw is sqrt(persistence) x the
+session's draw + sqrt(1 - persistence) x the frame's, so a share `persistence` of the error
+variance stays the same over a recording.
 """
 from __future__ import annotations
 
@@ -129,3 +139,41 @@ def noisy_pose(pose: np.ndarray, rng: np.random.Generator, sigma_body: float, si
     scale = scale_bias * np.exp(scale_sigma * rng.standard_normal())
     offset = offset_sigma * rng.standard_normal(3)
     return ((pose + noise) * scale + offset).astype(np.float32)
+
+
+def rotation_matrices(w: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of axis-angle vectors w (..., 3) radians (Rodrigues)."""
+    theta = np.linalg.norm(w, axis=-1, keepdims=True)
+    k = np.where(theta > 1e-12, w / np.maximum(theta, 1e-12), 0.0)
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
+    t = theta[..., None]
+    return np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
+
+
+def articulated_pose(pose: np.ndarray, frame: np.random.Generator, session: np.random.Generator,
+                     bone_sigma_deg: float, head_sigma_deg: float, ray_sigma: float = 0.0,
+                     lateral_sigma: float = 0.0, persistence: float = 0.0) -> np.ndarray:
+    """Truth pose (30, 3) metres, camera frame, with an articulated estimator's error (module
+    docstring); (30, 3) float32. frame, session: the frame's and its recording's generators."""
+    from ..skeleton import PARENTS
+
+    a, b = np.sqrt(persistence), np.sqrt(1.0 - persistence)
+
+    def draw(*shape: int) -> np.ndarray:
+        return a * session.standard_normal(shape) + b * frame.standard_normal(shape)
+
+    P = np.asarray(pose, np.float64)
+    w = draw(N_JOINTS, 3) * np.radians(bone_sigma_deg)
+    w[list(HEAD_JOINTS)] = draw(3) * np.radians(head_sigma_deg)
+    R = rotation_matrices(w)
+    A = np.empty((N_JOINTS, 3, 3))
+    out = np.empty_like(P)
+    ray = normalize(P[0]) if np.linalg.norm(P[0]) > 0 else np.array([0.0, 0.0, 1.0])
+    A[0], out[0] = R[0], P[0] + draw(1)[0] * ray_sigma * ray + draw(3) * lateral_sigma
+    for j in range(1, N_JOINTS):   # parents come first (skeleton.PARENTS)
+        p = PARENTS[j]
+        A[j] = A[p] @ R[j]
+        out[j] = out[p] + A[j] @ (P[j] - P[p])
+    return out.astype(np.float32)
