@@ -5,6 +5,7 @@ naming the path, what the command needed there and the fix; nothing finished is 
 rerun's store is a clean run's bit for bit (the checkpoint: the clean run's weights)."""
 import errno
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -112,8 +113,11 @@ def test_a_refused_write_is_one_line_keeps_what_is_finished_and_the_rerun_gives_
     kept = len(Cache(work / "cache").entries())
     if point == "cache entry":
         one_line(2, line, f"{work}/cache", "the stage cache in --work", "give --work on another filesystem",
-                 f"{kept} of {ENTRIES} cache entries are finished and kept")
-        assert kept >= after
+                 f" of {ENTRIES} cache entries are finished and kept")
+        # the count is the cache's when the error is reported; a worker thread may still place an
+        # entry of a kind the test does not refuse (not .npz) before the run has stopped
+        said = int(re.search(rf"(\d+) of {ENTRIES} cache entries are finished and kept", line).group(1))
+        assert after <= said <= kept
     else:
         one_line(2, line, f"all {ENTRIES} cache entries are finished and kept")
         assert kept == ENTRIES
