@@ -59,7 +59,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
 
     exp = demo_experiment(rooms, sessions_per_room, frames_per_session, transfer_rooms, epochs, seed)
     root = Path(out)
-    (seen, world), = exp.worlds.items()
+    seen, = exp.worlds
     worlds = {**exp.worlds, **exp.transfer}
     t_all = time.perf_counter()
 

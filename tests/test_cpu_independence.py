@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from ga3ce_prep.testing import mobilesam_random
-from ga3ce_prep.testing.cpu_levels import LEVELS, level_env, levels_here
+from ga3ce_prep.testing.cpu_levels import LEVELS, level_env, levels_here, numpy_dispatch
 
 
 @pytest.mark.parametrize("level", levels_here())
@@ -47,13 +47,7 @@ def test_levels_hold_a_child_process_to_them():
 def test_a_level_is_named_from_the_build_not_from_the_callers_cap(monkeypatch):
     """Under a parent already held to a level (its own NPY_DISABLE_CPU_FEATURES), `default` still
     turns every numpy dispatch target off, and a child never gets back what its parent left off."""
-    import importlib
-
-    try:
-        um = importlib.import_module("numpy._core._multiarray_umath")
-    except ImportError:  # numpy 1.x
-        um = importlib.import_module("numpy.core._multiarray_umath")
     monkeypatch.setenv("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL")
     off = level_env("default")["NPY_DISABLE_CPU_FEATURES"].split()
-    assert set(um.__cpu_dispatch__) <= set(off) and {"X86_V4", "AVX512_ICL"} <= set(off)
+    assert set(numpy_dispatch()[0]) <= set(off) and {"X86_V4", "AVX512_ICL"} <= set(off)
     assert {"X86_V4", "AVX512_ICL"} <= set(level_env("avx512").get("NPY_DISABLE_CPU_FEATURES", "").split())

@@ -85,8 +85,11 @@ class Experiment:
     def stores(self, out: Path, workers: int | None = None, progress: bool = True) -> dict[str, Path]:
         """Every world's store, OUT/<name>.zarr, made or checked (`World.ensure`)."""
         data = self.data_dirs(out)
-        return {name: w.ensure(data[name], Path(out) / f"{name}.zarr", workers=workers, progress=progress)
+        return {name: w.ensure(data[name], self.store_path(out, name), workers=workers, progress=progress)
                 for name, w in {**self.worlds, **self.transfer}.items()}
+
+    def store_path(self, out: Path, world: str) -> Path:
+        return Path(out) / f"{world}.zarr"
 
     def run_dir(self, out: Path, world: str, arm: Arm, seed: int) -> Path:
         return Path(out) / "runs" / self.name / world / arm.folder / f"seed{seed}"
@@ -103,7 +106,7 @@ class Experiment:
 
         model = dataclasses.replace(ModelConfig.for_method(self.base), **{**BY_NAME[arm.row].overrides, **arm.model})
         frames = {"train_frames": self.worlds[world].train_frames} if self.worlds[world].train_frames else {}
-        return TrainConfig(store=str(Path(out) / f"{world}.zarr"), out=str(self.run_dir(out, world, arm, seed)),
+        return TrainConfig(store=str(self.store_path(out, world)), out=str(self.run_dir(out, world, arm, seed)),
                            seed=seed, progress=progress, model=model, **{**frames, **self.recipe, **arm.recipe})
 
 

@@ -26,20 +26,26 @@ def levels_here() -> list[str]:
     return list(LEVELS[: LEVELS.index(top) + 1]) if top in LEVELS else ["default"]
 
 
+def numpy_dispatch() -> tuple[list[str], dict[str, bool]]:
+    """numpy's build-time dispatch targets and which features this process runs with."""
+    import importlib
+
+    try:
+        um = importlib.import_module("numpy._core._multiarray_umath")
+    except ImportError:  # numpy 1.x
+        um = importlib.import_module("numpy.core._multiarray_umath")
+    return list(um.__cpu_dispatch__), dict(um.__cpu_features__)
+
+
 def _numpy_features_above(level: str) -> list[str]:
     """numpy's dispatch targets (as this numpy's build names them: X86_V3 / X86_V4 in numpy 2.4,
     AVX2 / AVX512F / AVX512_SKX before) that a CPU of `level` would lack, after those this process
     was already told to leave off (its own NPY_DISABLE_CPU_FEATURES: a child never runs above its
     parent). Named from the build's list, not from what this process has on, so the answer does
     not depend on the caller's own cap."""
-    import importlib
     import os
 
-    try:
-        um = importlib.import_module("numpy._core._multiarray_umath")
-    except ImportError:  # numpy 1.x
-        um = importlib.import_module("numpy.core._multiarray_umath")
-    targets = list(um.__cpu_dispatch__)
+    targets = list(numpy_dispatch()[0])
     off = (targets if level == "default" else
            [f for f in targets if "512" in f or f == "X86_V4"] if level == "avx2" else [])
     inherited = os.environ.get("NPY_DISABLE_CPU_FEATURES", "").replace(",", " ").split()

@@ -226,7 +226,7 @@ def random_state(sam: Any) -> dict[str, np.ndarray]:
         if not t.is_floating_point() or bool((t == t.reshape(-1)[0]).all()):
             continue  # constants: exact on every CPU
         if isinstance(mod, (torch.nn.Linear, torch.nn.Conv2d, torch.nn.ConvTranspose2d)):
-            fan_in = torch.nn.init._calculate_fan_in_and_fan_out(mod.weight)[0]
+            fan_in = int(np.prod(mod.weight.shape[1:]))   # as torch.nn.init counts it
             out[name] = _draw(name, tuple(t.shape), 1.0 / float(np.sqrt(fan_in)))
         elif isinstance(mod, torch.nn.Embedding) or leaf == "positional_encoding_gaussian_matrix":
             out[name] = _draw(name, tuple(t.shape), unit)

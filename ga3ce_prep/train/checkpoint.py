@@ -8,6 +8,7 @@ Writes are atomic (temp file + rename): a killed run never leaves a half-written
 """
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -134,8 +135,6 @@ def run_design(path: str | Path) -> str | None:
     one of its checkpoints. Read from the run's config.json, else from the checkpoint (`best.pt` of a
     folder); an alias saved before the fixed names is read as the design it named then. None when
     the run has neither yet."""
-    import json
-
     path = Path(path)
     run, ckpt = (path, path / "best.pt") if path.is_dir() or not path.suffix else (path.parent, path)
     if (run / "config.json").is_file():
