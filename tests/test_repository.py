@@ -109,6 +109,23 @@ def test_results_files_that_studies_link_are_experiments():
             assert r["code"]["commit"] and not r["code"]["dirty"], f"{rel}: results of uncommitted code"
 
 
+def test_a_study_with_results_takes_its_tables_from_them():
+    """A study that links an experiment's results file takes the figures of its tables from that
+    file (as `experiment show` prints them), not from memory or another run."""
+    from ga3ce_prep.experiments import format_results
+
+    pages = [p for p in sorted((REPO / "docs" / "studies").glob("*.md")) if RESULTS_LINK.search(p.read_text())]
+    assert pages
+    for page in pages:
+        text = page.read_text()
+        printed = "\n".join(format_results(json.loads((page.parent / rel).read_text()))
+                            for rel in RESULTS_LINK.findall(text))
+        rows = [line for line in re.sub(r"```.*?```", "", text, flags=re.S).splitlines() if line.startswith("|")]
+        bad = [f"{f} in {row[:60]}" for row in rows for f in FIGURE.findall(STUDY_LINK.sub("", row))
+               if f not in printed]
+        assert not bad, f"{page.name}: table figures not in its results files:\n" + "\n".join(bad)
+
+
 def test_the_figure_rule_can_fail():
     assert FIGURE.findall("15.97 / 15.60, 53% and 1.97x; v2.0 x2.5") == ["15.97", "15.60", "53", "1.97"]
 

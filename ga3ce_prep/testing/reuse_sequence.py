@@ -1,5 +1,5 @@
 """Exact vs reuse (`reuse: sequence`) segment-everything over one synthetic camera sequence, for
-`make bench-objects` (benchmarks/bench_objects.py) and benchmarks/reuse_accuracy.py: seconds per frame of
+`make bench-objects` (benchmarks/bench_objects.py): seconds per frame of
 each (mean over the sequence, key frame included), the share of prompts decoded per frame in reuse
 mode, the key frames, and the agreement of P_object (per-mask median 3D points of the masks,
 measured depth): the share of exact objects with a reuse object within 2 cm and the reverse, pooled

@@ -38,8 +38,7 @@ def store_digests(path: str | Path) -> dict[str, str]:
 def object_distances(truth: Any, store: Any) -> tuple[np.ndarray, np.ndarray]:
     """Per object of `truth` (a store of the truth's objects, or any store): the distance (m) to the
     nearest object position `store` holds in the same frame (inf if none), and its mask area (px):
-    how near a segmenter's positions are to the true objects (`make bench-medians`,
-    `make bench-objects-quality`)."""
+    how near a segmenter's positions are to the true objects (`make bench-objects-quality`)."""
     idx = {fid: i for i, fid in enumerate(store.frames["id"])}
     d, area = [], []
     for j, fid in enumerate(truth.frames["id"]):
