@@ -126,3 +126,40 @@ def test_articulated_oracle_backend_runs_from_a_pipeline(synth_world, tmp_path):
     a, b = backend.pose(frames[0]), backend.pose(frames[0])
     np.testing.assert_array_equal(a, b)                        # seeded by the frame
     assert a.shape == (30, 3) and a.dtype == np.float32 and 0 < np.abs(a - backend.pose(frames[1])).max()
+
+
+def test_turn_oracle_errs_by_how_far_the_head_turns(synth_world):
+    """`oracle-turn`: v errs front_error_deg with the face to the camera, back_error_deg facing away."""
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.pipeline import load_pipeline
+    from ga3ce_prep.stages.view import turn_from_camera
+    from ga3ce_prep.synthetic.truth import TruthReader
+
+    assert turn_from_camera(np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 3.0])) == pytest.approx(0.0)
+    assert turn_from_camera(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 3.0])) == pytest.approx(90.0)
+    assert turn_from_camera(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 3.0])) == pytest.approx(180.0)
+    conf = load_pipeline("synthetic-calibrated", synth_world, check_files=False,
+                         overrides=["stages.view.params.front_error_deg=10", "stages.view.params.back_error_deg=30",
+                                    "stages.view.params.head_weight=0"])
+    view = conf.stages["view"].make(synth_world)
+    truth = TruthReader(synth_world / "truth.h5")
+    frames = list(open_dataset("gfie", synth_world).frames())
+    assert len(frames) >= 10
+    want, turns = [], []
+    for f in frames:
+        rec = truth.get(f.id)
+        want.append(view.mean_error_deg(rec.head_dir, rec.head_center))
+        turns.append(turn_from_camera(rec.head_dir, rec.head_center))
+    want, turns = np.array(want), np.array(turns)
+    at = np.array([0.0, 0.5, 3.0])                  # a head 3 m ahead, facing the camera, sideways, away
+    assert [view.mean_error_deg(d, at) for d in (-normalize(at), np.array([1.0, 0, 0]), normalize(at))] \
+        == pytest.approx([10.0, 20.0, 30.0])
+    np.testing.assert_allclose(want, 10 + 20 * (1 - np.cos(np.radians(turns))) / 2, atol=1e-9)
+    # each frame's error is drawn around its own mean: many draws of one frame per end of the range
+    for i in (int(np.argmin(turns)), int(np.argmax(turns))):
+        rec = truth.get(frames[i].id)
+        errs = [angular_error_deg(noisy_view(normalize(rec.gaze), rec.head_dir, frame_rng(k, "view/oracle", "x"),
+                                             want[i]), normalize(rec.gaze)) for k in range(3000)]
+        assert np.mean(errs) == pytest.approx(want[i], rel=0.05)
+    v = view.view(frames[0])
+    assert v.shape == (3,) and abs(np.linalg.norm(v) - 1) < 1e-5

@@ -57,6 +57,7 @@ BACKENDS: dict[str, str] = {
     "pose/torchscript": "ga3ce_prep.stages.pose_crop:TorchScriptPose",
     "view/precomputed": "ga3ce_prep.stages.view:PrecomputedView",
     "view/oracle": "ga3ce_prep.stages.view:OracleView",
+    "view/oracle-turn": "ga3ce_prep.stages.view:TurnOracleView",
     "view/facemesh": "ga3ce_prep.stages.view:FaceMeshView",
     "view/gfie": "ga3ce_prep.stages.view:GFIEView",
     "view/onnx": "ga3ce_prep.stages.view:OnnxView",

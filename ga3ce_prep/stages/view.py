@@ -4,6 +4,7 @@ estimate). A failure drops the frame: GA3CE has nothing to refine without v.
 Backends: `precomputed` (stages/precomputed.py layout), `oracle` (the synthetic truth gaze,
 optionally pulled toward the head direction, plus noise calibrated to a mean angular error:
 stages/oracle_noise.py `noisy_view`; the paper's robustness protocol uses 20, 30 and 40 degrees),
+`oracle-turn` (the same, its mean error growing as the head turns away from the camera),
 `facemesh` (the head direction from MediaPipe's face mesh on the registry's models:
 estimators/view/facemesh.py; a proxy for the paper's appearance network, not an eye-gaze estimate),
 `gfie` (GFIE's head-image gaze network from its released checkpoint: estimators/view/gfie_head.py),
@@ -81,6 +82,54 @@ class OracleView(ViewBackend):
         head = getattr(rec, "head_dir", None)
         return noisy_view(normalize(gaze), None if head is None else np.asarray(head, np.float64),
                           frame_rng(p.seed, "view/oracle", frame.id), p.mean_error_deg, p.head_weight)
+
+
+def turn_from_camera(head_dir: np.ndarray, head_center: np.ndarray) -> float:
+    """How far the head turns away from the camera, degrees: 0 facing it, 180 the back of the head
+    to it. head_dir: (3,) unit facing direction; head_center: (3,) metres, camera frame."""
+    to_camera = -normalize(np.asarray(head_center, np.float64))
+    return float(np.degrees(np.arccos(np.clip(np.dot(normalize(np.asarray(head_dir, np.float64)), to_camera),
+                                              -1.0, 1.0))))
+
+
+class TurnOracleView(ViewBackend):
+    """`oracle` whose mean error grows as the head turns away from the camera, as an appearance
+    network's does (it sees less of the eyes, then none): front_error_deg facing the camera,
+    back_error_deg with the back of the head to it, in between by (1 - cos turn) / 2."""
+
+    name = "oracle-turn"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Params(TruthParams):
+        seed: int = 0  # noise seed (combined with the frame id)
+        front_error_deg: float = param(
+            # mean angle between v and the truth gaze with the face toward the camera, degrees
+            12.8, minimum=0, maximum=90)
+        back_error_deg: float = param(
+            # the same with the back of the head toward it; the defaults (twice the front's) put the
+            # mean over the demo's world at 19.4, the paper's appearance-only v on GFIE (its Table 4)
+            25.6, minimum=0, maximum=90)
+        head_weight: float = param(
+            # pull of v toward the truth head direction before the noise (0: none, 1: centred on it)
+            0.0, minimum=0, maximum=1)
+
+    def check(self) -> None:
+        check_truth_file(self.p.truth)
+
+    def mean_error_deg(self, head_dir: np.ndarray, head_center: np.ndarray) -> float:
+        """The frame's mean error, degrees, from how far its head turns from the camera."""
+        w = (1.0 - np.cos(np.radians(turn_from_camera(head_dir, head_center)))) / 2.0
+        return float(self.p.front_error_deg + w * (self.p.back_error_deg - self.p.front_error_deg))
+
+    def view(self, frame: FrameRef) -> np.ndarray:
+        p = self.p
+        rec = truth_frame(p.truth, frame.id, maps=False)
+        gaze = np.asarray(rec.gaze, np.float64)
+        if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
+            raise FrameError(f"truth gaze of frame {frame.id} is not a direction")
+        head = np.asarray(rec.head_dir, np.float64)
+        return noisy_view(normalize(gaze), head, frame_rng(p.seed, "view/oracle", frame.id),
+                          self.mean_error_deg(head, rec.head_center), p.head_weight)
 
 
 class FaceMeshView(ProcessEstimator, ViewBackend):
