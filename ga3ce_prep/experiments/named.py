@@ -82,7 +82,7 @@ def objects_reuse(points_per_side: int = 32) -> Experiment:
         arms=(Arm("pointer-joint"),), seeds=tuple(range(10)))
 
 
-# The calibrated testbed's one free knob: the face's rotation error (pipelines/synthetic-calibrated.yaml)
+# The calibrated testbed's one free knob: the face's rotation error (ga3ce_prep/pipelines/synthetic-calibrated.yaml)
 HEAD_SIGMAS = (0.0, 2.9, 8.0, 16.0)
 
 
