@@ -128,3 +128,35 @@ def test_a_dataset_the_old_demo_wrote_is_reused(tmp_path):
     (data / "world.json").unlink()
     with pytest.raises(Exception, match="other contents"):
         demo_experiment(seed=1).worlds["synthetic"].ensure_data(data)
+
+
+def test_results_carry_each_session_and_gains_have_intervals(done):
+    from ga3ce_prep.experiments.intervals import gain
+
+    _, r = done
+    s = next(s for s in r["scores"] if s["arm"] == "full" and s["scored_on"] == "w")
+    assert sum(n for n, _, _ in s["sessions"].values()) == s["scored"]
+    assert sum(n * m for n, m, _ in s["sessions"].values()) / s["scored"] == pytest.approx(s["mae3d"], abs=1e-9)
+    g = gain(r, ["w"], "full", "no-objects", n_boot=200)
+    mae = {a: np.mean([x["mae3d"] for x in r["scores"] if x["arm"] == a and x["scored_on"] == "w"])
+           for a in ("full", "no-objects")}
+    assert g["gain"] == pytest.approx(1 - mae["full"] / mae["no-objects"], abs=1e-9)
+    assert g["low"] <= g["gain"] <= g["high"] and g["seeds"] == [0, 1]
+
+
+def test_a_gain_and_its_interval_are_the_session_bootstraps():
+    from ga3ce_prep.experiments.intervals import gain
+
+    rng = np.random.default_rng(0)
+
+    def score(world, arm, seed, maes):
+        return {"world": world, "arm": arm, "seed": seed, "scored_on": world,
+                "sessions": {f"s{i}": [10, m, 20.0] for i, m in enumerate(maes)}}
+
+    base = rng.uniform(14, 18, (2, 40))   # two worlds of 40 sessions of 10 frames
+    scores = [score(f"w{w}", "b", k, base[w] + rng.normal(0, 0.1, 40)) for w in range(2) for k in range(3)]
+    scores += [score(f"w{w}", "a", k, 0.9 * base[w] + rng.normal(0, 0.1, 40)) for w in range(2) for k in range(3)]
+    g = gain({"scores": scores}, ["w0", "w1"], "a", "b", n_boot=500)
+    assert g["gain"] == pytest.approx(0.10, abs=0.005) and g["low"] < 0.10 < g["high"]
+    assert g["high"] - g["low"] < 0.01                     # paired: the sessions' spread cancels
+    assert set(g["per_world"]) == {"w0", "w1"} and len(g["per_seed"]) == 3 and g["v_prior"] == 20.0

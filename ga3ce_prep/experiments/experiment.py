@@ -114,7 +114,8 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     """The checkpoint's model scored on `split` of `store` (train/evaluate.py, without siblings or
     plots): 3D and 2D MAE, median, scored N of M, and the v prior on the same frames. Kept in the
     run folder as scored-<split>-<key>.json, the key naming the checkpoint's bytes, the store's
-    fingerprint and the split, and read back while they hold."""
+    fingerprint and the split, and read back while they hold. Per scored session: its frames and
+    both 3D MAEs (`sessions`), for intervals over sessions (intervals.py)."""
     import hashlib
 
     from ..store import open_store
@@ -124,14 +125,17 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     fingerprint = store_fingerprint(open_store(store))
     key = hashlib.sha256(f"{file_sha256(checkpoint)}|{fingerprint}|{split}".encode()).hexdigest()[:16]
     path = Path(checkpoint).parent / f"scored-{split}-{key}.json"
-    if path.is_file():
-        return json.loads(path.read_text())
+    if path.is_file() and "sessions" in (kept := json.loads(path.read_text())):
+        return kept
     r = evaluate(str(store), checkpoint, split=split, cdf_path=None, no_objects=None, compare={}, threads=threads)
     m = r.methods["model"]
     score = {"mae3d": m.mae3d, "mae2d": m.mae2d, "median3d": m.median3d, "scored": r.n_frames,
              "expected": r.frames.expected, "protocol": r.frames.protocol, "epoch": r.epoch,
              "v_prior_mae3d": r.methods["view_prior"].mae3d, "label": r.labels["model"],
-             "store_fingerprint": fingerprint}
+             "store_fingerprint": fingerprint,
+             # per scored session (the store's scene): [frames, the model's 3D MAE, v's], for intervals
+             "sessions": {name: [g.n, g.mae3d, r.methods["view_prior"].per_scene[name].mae3d]
+                          for name, g in m.per_scene.items()}}
     path.write_text(json.dumps(score, indent=2, default=float))
     return score
 
@@ -239,10 +243,29 @@ def format_results(results: dict[str, Any]) -> str:
             mean = f"{np.mean(maes):.2f}" + (f" +- {np.std(maes):.2f}" if len(maes) > 1 else "")
             seeds = " / ".join(f"{x:.2f}" for x in maes) if len(maes) > 1 else ""
             lines.append(f"  {label:30s} {mean:>14s}  {seeds}".rstrip())
+    lines += _gain_lines(results)
     c = results["code"]
     lines += ["", f"machine: {describe(results['machine'])}; code {c['version']}"
               + (f" at {c['commit'][:7]}{' (uncommitted changes)' if c['dirty'] else ''}" if c.get("commit") else "")]
     return "\n".join(lines)
+
+
+def _gain_lines(results: dict[str, Any], base: str = "no-objects") -> list[str]:
+    """Each arm's gain over `base` with its session interval (intervals.py), pooled over the
+    training worlds that differ in their seed alone, scored on themselves; none without sessions."""
+    from .intervals import format_gain, gain
+
+    if base not in results["arms"] or not all("sessions" in s for s in results["scores"]):
+        return []
+    groups: dict[str, list[str]] = {}
+    for name, w in results["worlds"].items():
+        like = {k: v for k, v in w.items() if k not in ("seed", "data", "store", "stages")}
+        groups.setdefault(json.dumps(like, sort_keys=True, default=str), []).append(name)
+    lines = ["", f"gain over {base} (1 - MAE ratio), 95% interval over test sessions:"]
+    for worlds in groups.values():
+        lines.append(f"  {', '.join(worlds)}:")
+        lines += [f"    {format_gain(gain(results, worlds, arm, base))}" for arm in results["arms"] if arm != base]
+    return lines
 
 
 def _describe_world(w: dict[str, Any]) -> str:

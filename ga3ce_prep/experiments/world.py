@@ -90,7 +90,8 @@ class World:
 
     def ensure(self, data: Path, store: Path, workers: int | None = None, progress: bool = True) -> Path:
         """The store at `store` (the dataset at `data` first, each made unless it is there); returns
-        `store`. The pipeline's own cache makes an unchanged rerun a check. A finished store without
+        `store`. The pipeline's own cache makes an unchanged rerun a check; worlds of one dataset
+        (`data`) share it, in OUT/<data>.work. A finished store without
         its dataset beside it (copied from another machine) is used as it is."""
         import click
 
@@ -100,8 +101,10 @@ class World:
             return store
         self.ensure_data(data, progress=progress)
         fmt = [] if self.fmt == "gfie" else [f"dataset.format={self.fmt}"]
+        # worlds that name one dataset share one stage cache: what their pipelines share is made once
+        work = data.parent / f"{self.data}.work" if self.data else None
         summary = run_pipeline(self.pipeline, data=data, out=store, workers=workers, progress=progress,
-                               overrides=[*fmt, *self.overrides], shard_size=self.shard_size)
+                               overrides=[*fmt, *self.overrides], shard_size=self.shard_size, work_dir=work)
         if progress:
             click.echo(summary.format())
         return store
