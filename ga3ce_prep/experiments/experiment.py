@@ -228,7 +228,8 @@ def mae_table(results: dict[str, Any]) -> dict[tuple[str, str], dict[str, list[f
 
 def format_results(results: dict[str, Any]) -> str:
     """Any results file as text: per training world and scored-on world, each arm's 3D MAE (mean +-
-    std over seeds, and each seed's), scored N of M, then the machine and the code."""
+    std over seeds, its ratio to v's, and each seed's), scored N of M; each arm's gain over no
+    objects with its interval; then the machine and the code."""
     arms = results["arms"]
     lines = [f"{results['experiment']}: {results['question']}"]
     for (world, on), cell in mae_table(results).items():
@@ -237,12 +238,13 @@ def format_results(results: dict[str, Any]) -> str:
         what = w["protocol"] if on == world else f"transfer (trained on {world})"
         lines += ["", f"{on}: {what}, {first['split']} split, scored {first['scored']} of {first['expected']}; "
                       f"{_describe_world(w)}",
-                  f"  {'3D MAE (deg)':30s} {'mean +- std':>14s}  seeds"]
+                  f"  {'3D MAE (deg)':30s} {'mean +- std':>14s}  {'of v':>5s}  seeds"]
+        prior = cell["v prior"][0]
         for arm, maes in cell.items():
             label = arms[arm]["label"] if arm in arms else arm
             mean = f"{np.mean(maes):.2f}" + (f" +- {np.std(maes):.2f}" if len(maes) > 1 else "")
             seeds = " / ".join(f"{x:.2f}" for x in maes) if len(maes) > 1 else ""
-            lines.append(f"  {label:30s} {mean:>14s}  {seeds}".rstrip())
+            lines.append(f"  {label:30s} {mean:>14s}  {np.mean(maes) / prior:5.3f}  {seeds}".rstrip())
     lines += _gain_lines(results)
     c = results["code"]
     lines += ["", f"machine: {describe(results['machine'])}; code {c['version']}"
@@ -255,13 +257,13 @@ def _gain_lines(results: dict[str, Any], base: str = "no-objects") -> list[str]:
     training worlds that differ in their seed alone, scored on themselves; none without sessions."""
     from .intervals import format_gain, gain
 
-    if base not in results["arms"] or not all("sessions" in s for s in results["scores"]):
+    if base not in results["arms"] or len(results["arms"]) < 2 or not all("sessions" in s for s in results["scores"]):
         return []
     groups: dict[str, list[str]] = {}
     for name, w in results["worlds"].items():
         like = {k: v for k, v in w.items() if k not in ("seed", "data", "store", "stages")}
         groups.setdefault(json.dumps(like, sort_keys=True, default=str), []).append(name)
-    lines = ["", f"gain over {base} (1 - MAE ratio), 95% interval over test sessions:"]
+    lines = ["", f"gain over {base} (1 - MAE ratio), 95% interval over the scored sessions:"]
     for worlds in groups.values():
         lines.append(f"  {', '.join(worlds)}:")
         lines += [f"    {format_gain(gain(results, worlds, arm, base))}" for arm in results["arms"] if arm != base]
