@@ -137,6 +137,9 @@ def test_results_carry_each_session_and_gains_have_intervals(done):
     s = next(s for s in r["scores"] if s["arm"] == "full" and s["scored_on"] == "w")
     assert sum(n for n, _, _ in s["sessions"].values()) == s["scored"]
     assert sum(n * m for n, m, _ in s["sessions"].values()) / s["scored"] == pytest.approx(s["mae3d"], abs=1e-9)
+    near, far = s["target"]["at_object"], s["target"]["elsewhere"]
+    assert near[0] + far[0] == s["scored"]
+    assert sum(n * m for n, m, _ in (near, far) if n) / s["scored"] == pytest.approx(s["mae3d"], abs=1e-6)
     g = gain(r, ["w"], "full", "no-objects", n_boot=200)
     mae = {a: np.mean([x["mae3d"] for x in r["scores"] if x["arm"] == a and x["scored_on"] == "w"])
            for a in ("full", "no-objects")}
@@ -160,3 +163,13 @@ def test_a_gain_and_its_interval_are_the_session_bootstraps():
     assert g["gain"] == pytest.approx(0.10, abs=0.005) and g["low"] < 0.10 < g["high"]
     assert g["high"] - g["low"] < 0.01                     # paired: the sessions' spread cancels
     assert set(g["per_world"]) == {"w0", "w1"} and len(g["per_seed"]) == 3 and g["v_prior"] == 20.0
+
+
+def test_a_target_is_at_an_object_within_twenty_centimetres():
+    from ga3ce_prep.train.evaluate import target_at_object
+
+    objects = np.array([[[0.0, 0, 2], [1, 0, 2]], [[0.0, 0, 2], [9, 9, 9]], [[0.0, 0, 2], [0, 0, 0]]])
+    mask = np.array([[1, 1], [1, 0], [0, 0]], bool)
+    target = np.array([[1.1, 0, 2], [0.0, 0.25, 2], [0.0, 0, 2]])
+    assert target_at_object(target, objects, mask).tolist() == [True, False, False]   # masked objects do not count
+    assert not target_at_object(np.full((1, 3), np.nan), objects[:1], mask[:1]).any()

@@ -115,7 +115,8 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     plots): 3D and 2D MAE, median, scored N of M, and the v prior on the same frames. Kept in the
     run folder as scored-<split>-<key>.json, the key naming the checkpoint's bytes, the store's
     fingerprint and the split, and read back while they hold. Per scored session: its frames and
-    both 3D MAEs (`sessions`), for intervals over sessions (intervals.py)."""
+    both 3D MAEs (`sessions`), for intervals over sessions (intervals.py); the same for the frames
+    whose gaze target is at a stored object and for the others (`target`)."""
     import hashlib
 
     from ..store import open_store
@@ -125,7 +126,7 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     fingerprint = store_fingerprint(open_store(store))
     key = hashlib.sha256(f"{file_sha256(checkpoint)}|{fingerprint}|{split}".encode()).hexdigest()[:16]
     path = Path(checkpoint).parent / f"scored-{split}-{key}.json"
-    if path.is_file() and "sessions" in (kept := json.loads(path.read_text())):
+    if path.is_file() and "target" in (kept := json.loads(path.read_text())):
         return kept
     r = evaluate(str(store), checkpoint, split=split, cdf_path=None, no_objects=None, compare={}, threads=threads)
     m = r.methods["model"]
@@ -135,7 +136,10 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
              "store_fingerprint": fingerprint,
              # per scored session (the store's scene): [frames, the model's 3D MAE, v's], for intervals
              "sessions": {name: [g.n, g.mae3d, r.methods["view_prior"].per_scene[name].mae3d]
-                          for name, g in m.per_scene.items()}}
+                          for name, g in m.per_scene.items()},
+             # [frames, the model's 3D MAE, v's] where the gaze target is at a stored object, and elsewhere
+             "target": {k: [getattr(m, k).n, getattr(m, k).mae3d, getattr(r.methods["view_prior"], k).mae3d]
+                        for k in ("at_object", "elsewhere")}}
     path.write_text(json.dumps(score, indent=2, default=float))
     return score
 

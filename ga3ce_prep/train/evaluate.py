@@ -92,6 +92,18 @@ def beside(checkpoint: str | Path) -> dict[str, Any]:
     return {"no_objects": siblings.get("no_objects"), "compare": compare}
 
 
+AT_OBJECT_M = 0.2   # metres: a gaze target this near a stored object position is "at an object"
+
+
+def target_at_object(target: np.ndarray, objects: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(n,) bool: whether each frame's gaze target (n, 3) lies within AT_OBJECT_M of one of its
+    stored object positions (n, k, 3) where mask (n, k) is set; False for an unknown target."""
+    d = np.linalg.norm(objects - target[:, None, :], axis=-1)
+    d = np.where(mask.astype(bool), d, np.inf)
+    with np.errstate(invalid="ignore"):
+        return (d.min(axis=1, initial=np.inf) < AT_OBJECT_M) & np.all(np.isfinite(target), axis=1)
+
+
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
     b = ds.batch(np.arange(len(ds)))
     return b.objects.numpy(), b.mask.numpy()
@@ -175,9 +187,10 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
             snap_cone_deg = DEFAULT_SNAP_CONE_DEG
     objects, mask = _padded_objects(ds)
     preds["snap_to_object"], snapped = snap_to_object(ds.view, ds.head_pos, objects, mask, snap_cone_deg)
+    at_object = target_at_object(np.asarray(st.frames["gaze_target"][ds.rows], np.float64), objects, mask)
 
     scene, columns = _scene_columns(st, profile, ds.scene)
-    methods = {name: summarize(p, ds.gaze, scene, columns, fs.front) for name, p in preds.items()}
+    methods = {name: summarize(p, ds.gaze, scene, columns, fs.front, at_object) for name, p in preds.items()}
     model_mae = methods["model"].mae3d
     head_sources: dict[str, int] = {}
     head_fallback = 0

@@ -29,9 +29,10 @@ def _mean(x: np.ndarray) -> float:
 
 
 def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: list[str],
-              front: np.ndarray | None = None) -> MethodMetrics:
+              front: np.ndarray | None = None, at_object: np.ndarray | None = None) -> MethodMetrics:
     """Metrics of one method on n frames: pred, gt (n, 3); scene (n,) int codes into scene_names;
-    front (n,) bool (GAFA: per window from its first frame), None: gt z <= 0 per frame.
+    front (n,) bool (GAFA: per window from its first frame), None: gt z <= 0 per frame; at_object
+    (n,) bool: the frames whose gaze target is at a stored object (None: not split).
 
     Returns MethodMetrics (train/results.py): n, mae3d, mae2d, median3d, front and back
     GroupMetrics (n, mae3d, mae2d), per_scene {name: GroupMetrics} in scene_names' order; degrees.
@@ -49,4 +50,6 @@ def summarize(pred: np.ndarray, gt: np.ndarray, scene: np.ndarray, scene_names: 
         per_scene[name] = group(scene == code)
     return MethodMetrics(n=int(len(gt)), mae3d=_mean(e3), mae2d=_mean(e2),
                          median3d=float(np.median(e3)) if len(e3) else float("nan"),
-                         front=group(front), back=group(~front), per_scene=per_scene)
+                         front=group(front), back=group(~front), per_scene=per_scene,
+                         at_object=None if at_object is None else group(at_object),
+                         elsewhere=None if at_object is None else group(~at_object))

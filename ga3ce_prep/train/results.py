@@ -30,8 +30,8 @@ class GroupMetrics:
 @dataclass(frozen=True)
 class MethodMetrics:
     """One method on a split's scored frames (train/metrics.py `summarize`): n, 3D MAE, 2D MAE
-    (GAFA style), median 3D error, front / back (GAFA's split of the frames), and per scene (in
-    the evaluation's column order)."""
+    (GAFA style), median 3D error, front / back (GAFA's split of the frames), per scene (in the
+    evaluation's column order), and at_object / elsewhere when the frames' gaze targets are known."""
 
     n: int
     mae3d: float
@@ -40,11 +40,16 @@ class MethodMetrics:
     front: GroupMetrics
     back: GroupMetrics
     per_scene: dict[str, GroupMetrics] = field(default_factory=dict)
+    at_object: GroupMetrics | None = None    # frames whose gaze target is at a stored object (evaluate.py)
+    elsewhere: GroupMetrics | None = None    # the others: mid-air targets, and objects the store missed
 
     def to_json(self) -> dict[str, Any]:
-        return {"n": self.n, "mae3d": self.mae3d, "mae2d": self.mae2d, "median3d": self.median3d,
-                "front": self.front.to_json(), "back": self.back.to_json(),
-                "per_scene": {name: g.to_json() for name, g in self.per_scene.items()}}
+        out = {"n": self.n, "mae3d": self.mae3d, "mae2d": self.mae2d, "median3d": self.median3d,
+               "front": self.front.to_json(), "back": self.back.to_json(),
+               "per_scene": {name: g.to_json() for name, g in self.per_scene.items()}}
+        if self.at_object is not None and self.elsewhere is not None:
+            out |= {"at_object": self.at_object.to_json(), "elsewhere": self.elsewhere.to_json()}
+        return out
 
 
 @dataclass
