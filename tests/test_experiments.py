@@ -173,3 +173,18 @@ def test_a_target_is_at_an_object_within_twenty_centimetres():
     target = np.array([[1.1, 0, 2], [0.0, 0.25, 2], [0.0, 0, 2]])
     assert target_at_object(target, objects, mask).tolist() == [True, False, False]   # masked objects do not count
     assert not target_at_object(np.full((1, 3), np.nan), objects[:1], mask[:1]).any()
+
+
+def test_a_gain_splits_by_where_the_target_is():
+    from ga3ce_prep.experiments.intervals import target_gains
+
+    def score(arm, seed, near, far):
+        return {"world": "w", "arm": arm, "seed": seed, "scored_on": "w",
+                "target": {"at_object": [30, near, 20.0], "elsewhere": [10, far, 20.0]}}
+
+    r = {"scores": [score("b", 0, 10.0, 12.0), score("b", 1, 10.0, 12.0), score("a", 0, 8.0, 12.6),
+                    score("a", 1, 9.0, 12.6)]}
+    split = target_gains(r, ["w"], "a", "b")
+    assert split["at_object"] == (pytest.approx(1 - 17 / 20), 30) and split["elsewhere"] == (pytest.approx(-0.05), 10)
+    del r["scores"][0]["target"]
+    assert target_gains(r, ["w"], "a", "b") == {}

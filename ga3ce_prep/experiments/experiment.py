@@ -259,7 +259,7 @@ def format_results(results: dict[str, Any]) -> str:
 def _gain_lines(results: dict[str, Any], base: str = "no-objects") -> list[str]:
     """Each arm's gain over `base` with its session interval (intervals.py), pooled over the
     training worlds that differ in their seed alone, scored on themselves; none without sessions."""
-    from .intervals import format_gain, gain
+    from .intervals import format_gain, gain, target_gains
 
     if base not in results["arms"] or len(results["arms"]) < 2 or not all("sessions" in s for s in results["scores"]):
         return []
@@ -270,7 +270,12 @@ def _gain_lines(results: dict[str, Any], base: str = "no-objects") -> list[str]:
     lines = ["", f"gain over {base} (1 - MAE ratio), 95% interval over the scored sessions:"]
     for worlds in groups.values():
         lines.append(f"  {', '.join(worlds)}:")
-        lines += [f"    {format_gain(gain(results, worlds, arm, base))}" for arm in results["arms"] if arm != base]
+        for arm in (a for a in results["arms"] if a != base):
+            lines.append(f"    {format_gain(gain(results, worlds, arm, base))}")
+            if split := target_gains(results, worlds, arm, base):
+                lines.append("      where the target is " + "; ".join(
+                    f"{'at an object' if k == 'at_object' else 'elsewhere'}: {100 * g:+.1f}% ({n} frames)"
+                    for k, (g, n) in split.items()))
     return lines
 
 

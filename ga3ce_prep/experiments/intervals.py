@@ -73,3 +73,26 @@ def format_gain(g: dict[str, Any]) -> str:
             f"({g['mae']:.2f} vs {g['base_mae']:.2f}; v {g['v_prior']:.2f}; {g['sessions']} sessions, "
             f"{g['frames']} frames; per seed " + " / ".join(f"{100 * v:+.1f}" for v in g["per_seed"].values())
             + "; per world " + " / ".join(f"{100 * v:+.1f}" for v in g["per_world"].values()) + ")")
+
+
+def target_gains(results: dict[str, Any], worlds: list[str], arm: str, base: str) -> dict[str, tuple[float, int]]:
+    """The gain of `arm` over `base` on the frames whose gaze target is at a stored object and on
+    the others (ensure_scored's `target`), pooled over `worlds` and the seeds both have: {group:
+    (gain, frames per seed)}; empty when the scores do not split by target."""
+    out: dict[str, tuple[float, int]] = {}
+    for group in ("at_object", "elsewhere"):
+        num = den = 0.0
+        frames = 0
+        for w in worlds:
+            rows = {(s["arm"], s["seed"]): s for s in results["scores"]
+                    if s["world"] == w and s["scored_on"] == w and s["arm"] in (arm, base)}
+            if not all("target" in s for s in rows.values()):
+                return {}
+            for seed in sorted({k for a, k in rows if a == arm} & {k for a, k in rows if a == base}):
+                n, ma, _ = rows[(arm, seed)]["target"][group]
+                _, mb, _ = rows[(base, seed)]["target"][group]
+                if n:
+                    num, den = num + n * ma, den + n * mb
+            frames += next(iter(rows.values()))["target"][group][0]
+        out[group] = (1 - num / den if den else float("nan"), frames)
+    return out
