@@ -83,6 +83,13 @@ def test_a_rerun_trains_nothing_and_a_changed_recipe_is_refused(done):
     assert (runs / "ours" / "seed0" / "g0" / "best.pt").is_file()
 
 
+def test_part_of_an_experiment_runs_by_its_worlds():
+    e = tiny(worlds={"w": TINY, "w2": World(seed=9)})
+    assert list(e.with_worlds(("w2",)).worlds) == ["w2"] and e.with_worlds(("w2",)).transfer == e.transfer
+    with pytest.raises(ConfigError, match="no training worlds"):
+        e.with_worlds(("nope",))
+
+
 def test_declarations_are_checked():
     with pytest.raises(ConfigError, match="unknown rows"):
         tiny(arms=(Arm("no-such-row"),))

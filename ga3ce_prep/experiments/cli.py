@@ -30,9 +30,11 @@ def list_() -> None:
 @click.option("--out", default="out", show_default=True, type=click.Path(file_okay=False),
               help="Folder of the worlds, stores and runs (OUT/runs/NAME/...).")
 @click.option("--seeds", default=None, help="Comma-separated training seeds (default: the experiment's).")
+@click.option("--worlds", default=None,
+              help="Comma-separated training worlds to run (default: all); the results file then holds these.")
 @click.option("--workers", default=None, type=int, help="dask worker processes for preprocessing (default: threads).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def run(name: str, out: str, seeds: str | None, workers: int | None, quiet: bool) -> None:
+def run(name: str, out: str, seeds: str | None, worlds: str | None, workers: int | None, quiet: bool) -> None:
     """Run the experiment NAME (`ga3ce-prep experiment list`): make each world's store, train every
     arm and seed unless its run is done, score each, print the table and write the results JSON.
     Rerunning reuses everything finished; an interrupted run goes on."""
@@ -43,6 +45,8 @@ def run(name: str, out: str, seeds: str | None, workers: int | None, quiet: bool
     exp = EXPERIMENTS[name]
     if seeds:
         exp = exp.with_seeds(tuple(int(s) for s in seeds.split(",")))
+    if worlds:
+        exp = exp.with_worlds(tuple(worlds.split(",")))
     results = run_experiment(exp, out, progress=not quiet, workers=workers, echo=click.echo)
     click.echo(format_results(results))
     click.echo(f"wrote {exp.results_path(Path(out))}")

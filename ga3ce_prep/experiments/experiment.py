@@ -77,6 +77,12 @@ class Experiment:
     def with_seeds(self, seeds: tuple[int, ...]) -> Experiment:
         return dataclasses.replace(self, seeds=tuple(seeds))
 
+    def with_worlds(self, names: tuple[str, ...]) -> Experiment:
+        """The experiment on these of its training worlds alone (the transfer worlds kept)."""
+        if unknown := [n for n in names if n not in self.worlds]:
+            raise ConfigError(f"experiment {self.name}: no training worlds {unknown}; it has {list(self.worlds)}")
+        return dataclasses.replace(self, worlds={n: self.worlds[n] for n in names})
+
     def data_dirs(self, out: Path) -> dict[str, Path]:
         """Each world's dataset folder: OUT/<its `data`, else its name> (worlds that differ in their
         pipeline only name one dataset)."""
