@@ -1,5 +1,6 @@
 """A toy 3D-context world written straight into the store format (StoreWriter), for the trainer's
-tests and for iterating on the model before the rendered synthetic world and the pipeline exist.
+tests and for iterating on the model before the rendered synthetic world and the pipeline exist:
+`python -c "from ga3ce_prep.testing.toy_store import write_toy_store; write_toy_store('out/toy.zarr', 20000)"`.
 
 Each frame: a person (smpl+head_30 joints, huge8 order) standing or sitting 2-5 m from the camera,
 10-60 objects within 0.5-4 m of the head (half of them clustered on "tables"), a gaze target that
