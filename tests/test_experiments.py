@@ -144,6 +144,7 @@ def test_results_carry_each_session_and_gains_have_intervals(done):
     s = next(s for s in r["scores"] if s["arm"] == "full" and s["scored_on"] == "w")
     assert sum(n for n, _, _ in s["sessions"].values()) == s["scored"]
     assert sum(n * m for n, m, _ in s["sessions"].values()) / s["scored"] == pytest.approx(s["mae3d"], abs=1e-9)
+    assert s["curve"]["epochs"] == 1 and s["curve"]["best_epoch"] == 1 and s["curve"]["val_best"] > 0
     near, far = s["target"]["at_object"], s["target"]["elsewhere"]
     assert near[0] + far[0] == s["scored"]
     assert sum(n * m for n, m, _ in (near, far) if n) / s["scored"] == pytest.approx(s["mae3d"], abs=1e-6)

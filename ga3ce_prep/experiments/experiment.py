@@ -150,6 +150,18 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     return score
 
 
+def training_curve(run: Path) -> dict[str, float]:
+    """A finished run's training against validation 3D MAE (its history.csv): at the epoch best.pt
+    holds (lowest validation MAE) and at the last; a model that memorises its training frames errs
+    far less on them than on validation."""
+    from ..train.report import read_history
+
+    rows = read_history(Path(run) / "history.csv")
+    best = min(rows, key=lambda r: r["val_mae"])
+    return {"epochs": len(rows), "best_epoch": best["epoch"] + 1, "train_best": best["train_mae"],
+            "val_best": best["val_mae"], "train_last": rows[-1]["train_mae"], "val_last": rows[-1]["val_mae"]}
+
+
 def portable(value: Any, out: Path) -> Any:
     """`value` (a results record) with every absolute path under `out` written relative to it, and
     every one inside this package relative to the package's folder ("ga3ce_prep/pipelines/..."),
@@ -203,13 +215,14 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
                 twin = exp.run_dir(out, world, Arm("no-objects"), seed)
                 echo(f"  {world} / {arm.folder} / seed {seed}: {run}")
                 best = ensure_trained(cfg, twin=twin)
+                curve = training_curve(run)
                 recipe = {k: v for k, v in cfg.to_dict().items() if k not in ("store", "out", "seed", "progress")}
                 arms[arm.folder] = {"row": arm.row, "design": cfg.model.method,
                                     "label": row_label(ab, ModelConfig.for_method(exp.base)), "config": recipe}
                 for on, split in [(world, exp.split), *((t, "test") for t in exp.transfer)]:
                     s = ensure_scored(stores[on], best, split, threads=cfg.threads)
                     scores.append({"world": world, "arm": arm.folder, "seed": seed, "scored_on": on, "split": split,
-                                   "run": str(run), **s})
+                                   "run": str(run), **s, "curve": curve})
     results = {"experiment": exp.name, "question": exp.question, "split": exp.split, "seeds": list(exp.seeds),
                "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "seconds": round(time.perf_counter() - t0, 1),
                **conditions,
@@ -255,11 +268,30 @@ def format_results(results: dict[str, Any]) -> str:
             mean = f"{np.mean(maes):.2f}" + (f" +- {np.std(maes):.2f}" if len(maes) > 1 else "")
             seeds = " / ".join(f"{x:.2f}" for x in maes) if len(maes) > 1 else ""
             lines.append(f"  {label:30s} {mean:>14s}  {np.mean(maes) / prior:5.3f}  {seeds}".rstrip())
+        if on == world:
+            lines += _curve_lines(results, world)
     lines += _gain_lines(results)
     c = results["code"]
     lines += ["", f"machine: {describe(results['machine'])}; code {c['version']}"
               + (f" at {c['commit'][:7]}{' (uncommitted changes)' if c['dirty'] else ''}" if c.get("commit") else "")]
     return "\n".join(lines)
+
+
+def _curve_lines(results: dict[str, Any], world: str) -> list[str]:
+    """Per arm, training against validation 3D MAE at the best and the last epoch, mean over seeds."""
+    curves: dict[str, list[dict[str, float]]] = {}
+    for s in results["scores"]:
+        if s["world"] == world and s["scored_on"] == world and "curve" in s:
+            curves.setdefault(s["arm"], []).append(s["curve"])
+    if not curves:
+        return []
+    lines = [f"  {'train / val 3D MAE (deg)':30s} {'best epoch':>14s}  {'last epoch':>12s}  best epochs"]
+    for arm, cs in curves.items():
+        m = {k: np.mean([c[k] for c in cs]) for k in ("train_best", "val_best", "train_last", "val_last")}
+        label = results["arms"][arm]["label"]
+        lines.append(f"  {label:30s} {m['train_best']:6.2f} / {m['val_best']:5.2f}  {m['train_last']:5.2f} / "
+                     f"{m['val_last']:5.2f}  " + " / ".join(str(int(c["best_epoch"])) for c in cs))
+    return lines
 
 
 def _gain_lines(results: dict[str, Any], base: str = "no-objects") -> list[str]:
