@@ -14,7 +14,7 @@ OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
 .PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu bench-paper \
-	bench-integrity bench-gfm bench-cache-checks bench-head-fallback bench-medians bench-synth-workers clean
+	bench-integrity bench-gfm bench-cache-checks bench-head-fallback bench-medians bench-synth-workers bench-view clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -127,6 +127,10 @@ bench-medians: setup $(BENCH_WORLD)/truth.h5
 SYNTH_WORKERS_OUT ?= out/synth_workers
 bench-synth-workers: setup
 	$(PY) benchmarks/synth_workers.py $(SYNTH_WORKERS_OUT)
+## make bench-view: `ga3ce-prep view` on a 1,000-frame session at 640x480 (written once under out/bench/view): the
+## recording's MB per 1,000 frames, bytes by entity, seconds per frame, peak memory, with the defaults and other options.
+bench-view: setup
+	$(PY) benchmarks/bench_view.py
 
 clean:
 	rm -rf out .pytest_cache
