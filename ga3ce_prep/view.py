@@ -31,6 +31,7 @@ viewer never shows the previous frame's in its place. A store is read a block of
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 import time
 from collections import Counter
@@ -286,8 +287,11 @@ class Sink:
         if self.save is not None:
             Path(self.save).parent.mkdir(parents=True, exist_ok=True)
             rec.save(self.save, default_blueprint=bp)
-        elif self.spawn:
-            rec.spawn(default_blueprint=bp)
+        elif self.spawn:  # the extra's own viewer (package rerun_cli), whether or not its bin/ is on PATH
+            spec = importlib.util.find_spec("rerun_cli")
+            viewer = Path(next(iter(spec.submodule_search_locations or ()), "")) / "rerun" if spec else None
+            rr.spawn(recording=rec, default_blueprint=bp,
+                     executable_path=str(viewer) if viewer is not None and viewer.is_file() else None)
         else:
             grpc = rec.serve_grpc(grpc_port=self.grpc_port, default_blueprint=bp)
             rr.serve_web_viewer(web_port=self.web_port, open_browser=False, connect_to=grpc)
@@ -297,7 +301,11 @@ class Sink:
 
     def close(self, rec: Any, url: str) -> None:
         """Flush the recording; with `serve`, keep serving it until interrupted (Ctrl-C)."""
-        rec.flush()
+        try:
+            rec.flush()
+        except RuntimeError as e:  # Rerun's: its viewer, spawned, never listened
+            raise Ga3ceError(f"Rerun's viewer did not take the recording ({str(e).splitlines()[0]}): no display? "
+                             "write it with --save FILE.rrd and open it where there is one, or use --serve") from None
         if self.serve:
             click.echo(f"serving the web viewer at {url} (Ctrl-C stops it)", err=True)
             try:
