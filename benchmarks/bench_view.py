@@ -1,6 +1,7 @@
 """What `ga3ce-prep view` costs on one long session (docs/store.md "Look at a run"): the recording's size
 (MB, and per 1,000 frames), its bytes by entity, the seconds per frame and the command's peak memory, with
-the defaults and with the options that trade size (--points, --no-depth, --jpeg-quality); and, with
+the defaults and with the options that trade size (--points, --no-depth, --jpeg-quality), and on the
+session's first 100 frames (the peak memory does not grow with the frames); and, with
 --screenshot, the web viewer's picture of a session in headless chromium, for the manual (a PNG of 256
 colours).
 
@@ -115,26 +116,28 @@ def screenshot(store: Path, session: str, checkpoint: str | None, out: Path, fra
 @click.option("--only-screenshot", is_flag=True, help="Only the screenshot, no recordings measured.")
 def main(store: str | None, session: str | None, checkpoint: str | None, frames: int, work: str, shot: str | None,
          only_screenshot: bool) -> None:
+    from ga3ce_prep.store import open_lazy
+
     work_dir = Path(work)
     work_dir.mkdir(parents=True, exist_ok=True)
     if store is None:
         path, name = world(work_dir, frames)
     else:
         path, name = Path(store), session or ""
+    lazy = open_lazy(path, verify=False)
     if not only_screenshot:
+        first = [str(i) for i in lazy.index["id"][lazy.index["scene"] == lazy.scene_names.index(name)][:100].tolist()]
+        variants = {**VARIANTS, "defaults, its first 100 frames": [a for i in first for a in ("--frame", i)]}
         rows = {}
-        for label, extra in VARIANTS.items():
-            rrd = work_dir / f"{label.strip('-').replace(' ', '_')}.rrd"
+        for label, extra in variants.items():
+            rrd = work_dir / f"{re.sub(r'[^a-z0-9]+', '_', label.strip('-'))}.rrd"
             rows[label] = measure(path, name, [*extra, *(["-c", checkpoint] if checkpoint else [])], rrd)
-            print(f"{label:>18}: " + ", ".join(f"{k} {v:.3g}" for k, v in rows[label].items()), flush=True)
+            print(f"{label:>30}: " + ", ".join(f"{k} {v:.3g}" for k, v in rows[label].items()), flush=True)
         print("kB per frame by entity (uncompressed), defaults:")
         for entity, kb in by_entity(work_dir / "defaults.rrd").items():
             print(f"  {entity:<28} {kb:8.1f}")
         (work_dir / "bench_view.json").write_text(json.dumps(rows, indent=1))
     if shot:
-        from ga3ce_prep.store import open_lazy
-
-        lazy = open_lazy(path, verify=False)
         n = int((lazy.index["scene"] == lazy.scene_names.index(name)).sum())
         with cpu_lock():
             screenshot(path, name, checkpoint, Path(shot), n)

@@ -187,7 +187,7 @@ def blueprint(rr: Any) -> Any:
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(origin="/", name="3D context (camera frame, m)", contents=["/**", "- /depth/image"],
-                              eye_controls=rrb.EyeControls3D(position=(0.0, -1.5, -2.0), look_target=(0.0, 0.0, 3.0),
+                              eye_controls=rrb.EyeControls3D(position=(0.0, -1.2, -1.0), look_target=(0.0, 0.3, 3.0),
                                                              eye_up=(0.0, -1.0, 0.0))),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="camera", name="image",
@@ -210,8 +210,9 @@ def arrow(rr: Any, origin: np.ndarray, direction: np.ndarray | None, length: flo
 
 
 def log_frame(rr: Any, rec: Any, fv: FrameView, times: dict[str, int], arrow_m: float = ARROW_M,
-              jpeg_quality: int = JPEG_QUALITY) -> None:
-    """Log one frame (module docstring) at `times` (timeline -> sequence number)."""
+              jpeg_quality: int = JPEG_QUALITY, masks: bool = False) -> None:
+    """Log one frame (module docstring) at `times` (timeline -> sequence number); its masks when asked
+    (`masks`: a recording that shows them, cleared on a frame without)."""
     clear = rr.Clear(recursive=False)
     rec.reset_time()
     for timeline, t in times.items():
@@ -234,7 +235,8 @@ def log_frame(rr: Any, rec: Any, fv: FrameView, times: dict[str, int], arrow_m: 
                 if ok else clear)
     else:
         rec.log("depth/image", clear)
-    rec.log("camera/masks", rr.SegmentationImage(fv.masks) if fv.masks is not None else clear)
+    if masks:
+        rec.log("camera/masks", rr.SegmentationImage(fv.masks) if fv.masks is not None else clear)
     rec.log("depth/points", rr.Points3D(fv.points, colors=fv.colours, radii=rr.components.Radius.ui_points(2.0))
             if len(fv.points) else clear)
     ok = np.isfinite(fv.objects).all(1)
@@ -514,7 +516,7 @@ def record_store(rr: Any, rec: Any, store: LazyStore, rows: np.ndarray, *, data:
                             None if g is None else g[k], budget)
             scene = int(store.index["scene"][row])
             log_frame(rr, rec, fv, {names[scene] if scene < len(names) else str(scene): int(where[row]), "row": row},
-                      arrow_m, jpeg_quality)
+                      arrow_m, jpeg_quality, masks)
             out.frames += 1
             out.images += rgb is not None
             out.depth += dm is not None

@@ -181,12 +181,13 @@ def test_a_frame_without_a_value_clears_the_last_one(store, tmp_path):
     rr_, rec, url = sink.open("clears")
     for k in range(2):
         fv = view_module.frame_view(block, k, rgb=np.zeros((120, 160, 3), np.uint8) if k == 0 else None,
-                                    depth=np.ones((120, 160), np.float32) if k == 0 else None)
-        view_module.log_frame(rr, rec, fv, {"row": k})
+                                    depth=np.ones((120, 160), np.float32) if k == 0 else None,
+                                    masks=np.ones((120, 160), np.uint16) if k == 0 else None)
+        view_module.log_frame(rr, rec, fv, {"row": k}, masks=True)
     sink.close(rec, url)
     r = read_recording(tmp_path / "c.rrd")
     for entity in ("/frames/gaze", "/frames/pose", "/frames/pose/bones", "/camera/image", "/depth/image",
-                   "/depth/points"):
+                   "/depth/points", "/camera/masks"):
         first, second = r.at(entity, "row")[0], r.at(entity, "row")[1]
         assert "Clear:is_recursive" not in first and second["Clear:is_recursive"] == [False], entity
     assert 1 not in r.at("/error_deg/view", "row")           # no truth: no error point
@@ -216,6 +217,7 @@ def test_choosing_frames_by_session_split_and_id(store, tmp_path):
     assert rec.timelines() == {"row", one}
     assert sorted(rec.at("/frames/id", one)) == list(range(int((scene == 1).sum())))
     assert "/depth/points" in rec.rows and all("Clear:is_recursive" in r for r in rec.rows["/depth/points"])
+    assert "/camera/masks" not in rec.rows and "/model/gaze" not in rec.rows     # not asked for: not there
 
 
 def test_the_store_streams_a_block_at_a_time(store, tmp_path, monkeypatch):
