@@ -283,7 +283,7 @@ class Sink:
         self.check()
         rr = import_rerun()
         rec = rr.RecordingStream("ga3ce-prep", recording_id=name)
-        rr.set_log_time_enabled(False, recording=rec)  # the frames' own timelines only: the same bytes each run
+        rr.set_log_time_enabled(False, recording=rec)  # the frames' own timelines only, no wall-clock one
         bp = blueprint(rr)
         url = ""
         if self.save is not None:
