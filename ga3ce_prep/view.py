@@ -421,7 +421,7 @@ def read_rgb(ref: FrameRef | None, missing: Counter[str]) -> np.ndarray | None:
     try:
         return load_rgb(ref.image_path)
     except FrameError as e:
-        missing[f"image: {e}"] += 1
+        missing[f"image: {type(e).__name__}"] += 1
         return None
 
 
