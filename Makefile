@@ -13,7 +13,8 @@ DATA    ?= out/synthetic
 OUT     ?= out/$(DATASET).zarr
 MODELS  ?= models
 
-.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu bench-paper clean
+.PHONY: setup models test-models lint demo test prep schema bench-synth bench-prep bench-train bench-objects bench-scale bench-crash bench-reuse bench-objects-value bench-objects-quality bench-gpu bench-paper \
+	bench-view clean
 
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -93,6 +94,10 @@ bench-crash: setup
 ## MAE of a model trained on each, ten seeds (hours of CPU at the 32x32 grid).
 bench-reuse: setup models
 	$(CLI) experiment run objects-reuse --out out/experiments
+## make bench-view: `ga3ce-prep view` on a 1,000-frame session at 640x480 (written once under out/bench/view): the
+## recording's MB per 1,000 frames, bytes by entity, seconds per frame, peak memory, with the defaults and other options.
+bench-view: setup
+	$(PY) benchmarks/bench_view.py
 
 clean:
 	rm -rf out .pytest_cache

@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("ga3ce_prep.pipeline.cli:run", "Preprocess a dataset into a 3D context store (staged, cached, resumable)."),
     "info": ("ga3ce_prep.store_cli:info", "Print what a store holds: splits, scenes, objects, provenance, failures."),
     "show": ("ga3ce_prep.store_cli:show", "Draw one frame's 3D context as a PNG, or write it as a PLY point set."),
+    "view": ("ga3ce_prep.view:view",
+             "Show a store's 3D context over time, and a checkpoint's gaze, in Rerun (the extra [view])."),
     "export": ("ga3ce_prep.store_cli:export", "Export a store's arrays to HDF5 for other trainers."),
     "train": ("ga3ce_prep.train.cli:train", "Train the GA3CE 3D gaze transformer on a store."),
     "eval": ("ga3ce_prep.train.cli:evaluate",
@@ -52,6 +54,7 @@ WRITES: dict[str, tuple[str | int, str, str]] = {
     "export": (1, "the HDF5 file", ""),
     "predict": ("--out", "the drawing", ""),
     "show": ("--out", "the drawing", ""),
+    "view": ("--save", "the recording", ""),
 }
 RERUN = "nothing it finished is lost: rerun the command"
 

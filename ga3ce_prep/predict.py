@@ -300,8 +300,12 @@ def _box(value: str | None) -> tuple[float, ...] | None:
 @click.option("--ply", default=None, type=click.Path(dir_okay=False),
               help="Also write the 3D context as a PLY point set.")
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
+@click.option("--view", "view_to", is_flag=False, flag_value="spawn", default=None, metavar="[FILE.rrd|serve]",
+              help="Also show the 3D context in Rerun as `ga3ce-prep view` shows a store's frame (the extra [view]): "
+                   "alone, in its native viewer; `--view FILE.rrd` writes the recording; `--view serve` serves its "
+                   "web viewer on port 9090 until Ctrl-C.")
 def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, pipeline, fast, overrides, out,
-            ply, as_json) -> None:
+            ply, as_json, view_to) -> None:
     """Run the pipeline's stages on one frame (no store) and, with --checkpoint, its model.
 
     Prints the view prior v and the gaze g (unit vectors, camera frame x right, y down, z forward;
@@ -316,6 +320,14 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
     """
     if depth_scale is None:
         depth_scale = 0.001 if depth and Path(depth).suffix.lower() == ".png" else 1.0
+    sink = None
+    if view_to is not None:
+        from .view import Sink, import_rerun
+
+        sink = Sink(save=None if view_to in ("spawn", "serve") else view_to, spawn=view_to == "spawn",
+                    serve=view_to == "serve")
+        sink.check()
+        import_rerun()  # before the stages' seconds: say now when the extra is missing
     p = Predictor(pipeline, checkpoint, list(overrides), fast=fast)
     r = p(image, _box(head_box), depth=depth, depth_scale=depth_scale, fov=fov, K=K, body_box=_box(body_box))
     from .viz import write_context
@@ -329,4 +341,13 @@ def predict(image, head_box, body_box, depth, depth_scale, K, fov, checkpoint, p
     else:
         click.echo(r.format())
         click.echo(f"wrote {out}" + (f" and {ply}" if ply else ""))
+    if sink is not None:  # the photo as `view` shows a store's frame: g is the model's, there is no truth
+        from .frames import load_rgb
+        from .view import record_frame
+
+        one = one_frame_store(r)
+        one.frames["gaze"] = np.full((1, 3), np.nan, np.float32)
+        record_frame(sink, one, f"predict:{r.frame.id}", load_rgb(r.frame.image_path), r.depth.depth,
+                     r.gaze if checkpoint else None)
+        click.echo(f"wrote {sink.save}" if sink.save is not None else "shown in Rerun", err=as_json)
 

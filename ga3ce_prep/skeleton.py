@@ -25,6 +25,8 @@ PARENTS: tuple[int, ...] = (
     -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
     15, 15, 15, 15, 15, 15,
 )
+# The skeleton's bones: (joint, its parent) for every joint but the root.
+BONES: tuple[tuple[int, int], ...] = tuple((j, p) for j, p in enumerate(PARENTS) if p >= 0)
 
 HEAD_JOINTS: tuple[int, ...] = (24, 25, 26, 27, 28, 29)  # t_pose = mean of these (GA3CE)
 # GA3CE's 15-joint subset: pelvis, knees, spine2, ankles, neck, elbows, wrists, nose, ears, head top.

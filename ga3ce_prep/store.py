@@ -20,7 +20,9 @@ chunked along the first axis only (Zstd).
 
 Write with `StoreWriter` (appends blocks, memory bounded by one chunk per array); read with
 `open_store`, which first checks every file against the integrity record (`verify=False` skips
-that), then loads every array into memory (a few KB per frame) and needs no torch.
+that), then loads every array into memory (a few KB per frame) and needs no torch; or with
+`open_lazy`, which loads only the columns that choose frames and reads the rest for the rows
+asked for (`LazyStore.rows`: a store of any size, a block of frames at a time).
 """
 from __future__ import annotations
 
@@ -448,15 +450,9 @@ def _version(version: Any) -> tuple[int, ...]:
         return tuple(int(x) for x in SCHEMA_VERSION.split("."))
 
 
-def open_store(path: str | Path, verify: bool = True) -> ContextStore:
-    """Load a store into memory as numpy arrays. Raises StoreError if it is missing, unfinished,
-    of another major schema version, or damaged: any file that differs from the integrity record
-    (`verify_store`, naming the array and the chunk, and the command that rebuilds it). A store of
-    schema < 1.3 has no record: it is read with a warning. `verify=False` skips the check (only a
-    file that cannot be read is then refused, naming its array, and its chunk when the record can
-    tell); a process that opens one local store several times checks it once while its files stay
-    unchanged."""
-    path = str(path)
+def _open_checked(path: str, verify: bool) -> tuple[zarr.Group, dict[str, Any], bool]:
+    """The root group and attributes of a finished store of this major schema version, checked against
+    its integrity record (`verify`; `open_store`'s rules), and whether it was."""
     root, attrs = _open_root(path)
     version = attrs.get("schema_version")
     if version is None:
@@ -466,13 +462,34 @@ def open_store(path: str | Path, verify: bool = True) -> ContextStore:
         raise StoreError(f"{path} has store schema {version}; this ga3ce-prep reads {SCHEMA_VERSION}. "
                          "Rebuild the store with this version (`ga3ce-prep run`) or install the "
                          "ga3ce-prep release that wrote it")
-    verified = False
     if verify and "integrity" not in attrs and _version(version) < RECORD_SINCE:
         log.warning("%s (schema %s) has no integrity record, which came with schema 1.3: it is read unchecked; "
                     "rebuild it with this ga3ce-prep (`ga3ce-prep run`) to give it one", path, version)
-    elif verify:
+        return root, attrs, False
+    if verify:
         _verify_once(path)
-        verified = True
+    return root, attrs, verify
+
+
+def _code_names(root: zarr.Group, arrays: dict[str, Any]) -> tuple[list[str], list[str], dict[str, list[str]]]:
+    """The names behind the split, scene and source codes (`ContextStore`'s split_names, scene_names,
+    source_names); `arrays`: the store's frame arrays, by name (which source arrays it has)."""
+    split_names = _names(root["frames/split"], SPLITS)
+    scene_names = _names(root["frames/scene"], ())
+    source_names = {st: _names(root[f"frames/{st}_source"], ()) for st in SOURCE_STAGES if f"{st}_source" in arrays}
+    return split_names, scene_names, source_names
+
+
+def open_store(path: str | Path, verify: bool = True) -> ContextStore:
+    """Load a store into memory as numpy arrays. Raises StoreError if it is missing, unfinished,
+    of another major schema version, or damaged: any file that differs from the integrity record
+    (`verify_store`, naming the array and the chunk, and the command that rebuilds it). A store of
+    schema < 1.3 has no record: it is read with a warning. `verify=False` skips the check (only a
+    file that cannot be read is then refused, naming its array, and its chunk when the record can
+    tell); a process that opens one local store several times checks it once while its files stay
+    unchanged. `open_lazy` opens a store without loading it."""
+    path = str(path)
+    root, attrs, verified = _open_checked(path, verify)
     groups: dict[str, dict[str, np.ndarray]] = {g: {} for g in GROUPS}
     key = ""
     try:
@@ -484,20 +501,86 @@ def open_store(path: str | Path, verify: bool = True) -> ContextStore:
             for name, array in g.arrays():
                 key = f"{gname}/{name}"
                 groups[gname][name] = np.asarray(array[...])
-        key = "frames/split"
-        split_names = _names(root["frames/split"], SPLITS)
-        key = "frames/scene"
-        scene_names = _names(root["frames/scene"], ())
-        source_names = {}
-        for st in SOURCE_STAGES:
-            if f"{st}_source" in groups["frames"]:
-                key = f"frames/{st}_source"
-                source_names[st] = _names(root[key], ())
+        key = "frames (the names of its codes)"
+        split_names, scene_names, source_names = _code_names(root, groups["frames"])
     except Exception as e:  # whatever a damaged chunk or zarr.json makes zarr raise
         raise _unreadable(path, key, e) from None
     return ContextStore(path=path, attrs=attrs, frames=groups["frames"], objects=groups["objects"],
                         failures=groups["failures"], split_names=split_names, scene_names=scene_names,
                         source_names=source_names, verified=verified)
+
+
+# the frame arrays `LazyStore` holds in memory: what frames are chosen by, and where their objects are
+INDEX_ARRAYS: tuple[str, ...] = ("id", "split", "scene", "obj_start", "obj_count")
+
+
+@dataclass
+class LazyStore:
+    """A store opened without loading it (`open_lazy`): in memory only the frame arrays that choose
+    frames and find their objects (INDEX_ARRAYS: `index[name]`, (N,), a few tens of bytes per
+    frame); every other array is read for the rows asked for (`rows`), chunk by chunk. Codes'
+    names and `verified` as in `ContextStore`."""
+
+    path: str
+    attrs: dict[str, Any]
+    root: zarr.Group
+    index: dict[str, np.ndarray]
+    split_names: list[str] = field(default_factory=list)
+    scene_names: list[str] = field(default_factory=list)
+    source_names: dict[str, list[str]] = field(default_factory=dict)
+    verified: bool = False
+
+    def __len__(self) -> int:
+        return len(self.index["id"])
+
+    def rows(self, rows: np.ndarray) -> ContextStore:
+        """The frames `rows` (k,) int (store rows, in the order given) and their objects as an in-memory
+        ContextStore of k frames (its obj_start counts its own objects; no failures): only the chunks
+        holding them are read. StoreError naming the array when one cannot be read."""
+        rows = np.asarray(rows, np.int64)
+        count = self.index["obj_count"][rows].astype(np.int64)
+        start = self.index["obj_start"][rows].astype(np.int64)
+        objs = np.repeat(start - np.cumsum(count) + count, count) + np.arange(int(count.sum()))
+        frames: dict[str, np.ndarray] = {}
+        objects: dict[str, np.ndarray] = {}
+        key = ""
+        try:
+            for group, out, sel in (("frames", frames, rows), ("objects", objects, objs)):
+                g = self.root[group]
+                assert isinstance(g, zarr.Group)  # _open_checked's store: open_lazy read its index from it
+                for name, array in g.arrays():
+                    key = f"{group}/{name}"
+                    out[name] = (np.asarray(array.oindex[sel]) if len(sel)
+                                 else np.zeros((0, *array.shape[1:]), array.dtype))
+        except Exception as e:  # whatever a damaged chunk makes zarr raise
+            raise _unreadable(self.path, key, e) from None
+        frames["obj_start"] = np.cumsum(count) - count
+        return ContextStore(path=self.path, attrs=self.attrs, frames=frames, objects=objects, failures={},
+                            split_names=self.split_names, scene_names=self.scene_names,
+                            source_names=self.source_names, verified=self.verified)
+
+
+def open_lazy(path: str | Path, verify: bool = True) -> LazyStore:
+    """Open a store without loading its arrays (`LazyStore`): checked as `open_store` checks it (the
+    integrity record hashes every file once, holding one file at a time), then only INDEX_ARRAYS read."""
+    path = str(path)
+    root, attrs, verified = _open_checked(path, verify)
+    key = ""
+    try:
+        index = {}
+        for name in INDEX_ARRAYS:
+            key = f"frames/{name}"
+            array = root[key]
+            assert isinstance(array, zarr.Array), f"{key} is a group"
+            index[name] = np.asarray(array[...])
+        frames = root["frames"]
+        assert isinstance(frames, zarr.Group), "frames is an array"
+        key = "frames (the names of its codes)"
+        split_names, scene_names, source_names = _code_names(root, dict(frames.arrays()))
+    except Exception as e:  # whatever a damaged chunk or zarr.json makes zarr raise
+        raise _unreadable(path, key, e) from None
+    return LazyStore(path=path, attrs=attrs, root=root, index=index, split_names=split_names,
+                     scene_names=scene_names, source_names=source_names, verified=verified)
 
 
 def _names(node: zarr.Array | zarr.Group, default: tuple[str, ...]) -> list[str]:

@@ -22,7 +22,7 @@ import numpy as np
 from .errors import FrameError, Ga3ceError, StoreError
 from .frames import FrameRef, load_depth, load_rgb
 from .geometry import depth_to_points, normalize, project
-from .store import ContextStore
+from .store import ContextStore, LazyStore
 
 BLUE, RED, GREEN, YELLOW, MAGENTA, ORANGE = ((255, 120, 0), (40, 40, 230), (60, 200, 60), (0, 230, 255),
                                              (230, 60, 230), (0, 150, 255))  # BGR
@@ -39,7 +39,7 @@ def frame_index(store: ContextStore, frame_id: str) -> int:
     raise StoreError(f"frame {frame_id!r} is not in {store.path}{why}; e.g. {near or store.frames['id'][:3].tolist()}")
 
 
-def find_frame_refs(store: ContextStore, frame_ids: Iterable[str],
+def find_frame_refs(store: ContextStore | LazyStore, frame_ids: Iterable[str],
                     data: str | Path | None = None) -> dict[str, FrameRef]:
     """id -> the dataset's FrameRef for each of frame_ids the dataset has, re-opening the dataset
     the store was made from (`datasets.open_store_dataset`: its provenance, or the one at `data`);

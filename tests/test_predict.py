@@ -13,8 +13,10 @@ from ga3ce_prep.errors import FrameError
 from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.predict import Prediction, Predictor, intrinsics
 from ga3ce_prep.testing.photos import photo
+from ga3ce_prep.testing.recordings import read_recording
 from ga3ce_prep.testing.toy_store import write_toy_store
 from ga3ce_prep.train import TrainConfig, train
+from ga3ce_prep.view import ARROW_M, POINT_BUDGET
 
 HEAD = (150, 15, 300, 190)  # the astronaut's head box, px
 
@@ -70,12 +72,12 @@ def test_predict_on_the_astronaut_without_depth(astronaut, tmp_path):
 
 
 def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, checkpoint, tmp_path):
-    out = tmp_path / "p.png"
+    out, rrd = tmp_path / "p.png", tmp_path / "p.rrd"
     res = CliRunner().invoke(cli, ["predict", "-i", str(astronaut), "--head-box", ",".join(map(str, HEAD)),
-                                   "-c", str(checkpoint), "-o", str(out), "--json", "--fast"],
-                           catch_exceptions=False)
+                                   "-c", str(checkpoint), "-o", str(out), "--json", "--fast", "--view", str(rrd)],
+                             catch_exceptions=False)
     assert res.exit_code == 0, res.output
-    d = json.loads(res.output[res.output.index("{"):])
+    d = json.loads(res.stdout)
     g = np.array(d["gaze"])
     assert np.linalg.norm(g) == pytest.approx(1, abs=1e-5)
     assert d["sources"] == {"head": "measured", "view": "face"}
@@ -83,6 +85,18 @@ def test_predict_cli_with_a_checkpoint_writes_the_drawing_and_json(astronaut, ch
     img = np.asarray(Image.open(out))
     assert img.shape[0] >= 480
     assert img.shape[2] == 3
+    # --view: the photo as `ga3ce-prep view` shows a store's frame, read back with Rerun's reader
+    at = {e: rows[-1] for e, rows in read_recording(rrd).rows.items()}
+    assert at["/frames/id"]["photo"] == 0 and at["/frames/id"]["TextDocument:text"] == ["astronaut"]
+    head = np.array(d["head_pos"])
+    for entity, direction in (("/model/gaze", g), ("/frames/view", np.array(d["view"]))):
+        np.testing.assert_allclose(at[entity]["Arrows3D:origins"][0], head, atol=1e-5)
+        np.testing.assert_allclose(at[entity]["Arrows3D:vectors"][0], ARROW_M * direction, atol=1e-5)
+    assert at["/frames/gaze"]["Clear:is_recursive"] == [False]          # a photo has no truth
+    np.testing.assert_allclose(at["/objects/xyz"]["Points3D:positions"], [o["xyz"] for o in d["objects"]], atol=1e-5)
+    assert 1000 < len(at["/depth/points"]["Points3D:positions"]) <= POINT_BUDGET    # FastDepth's, thinned
+    assert len(at["/frames/pose"]["Points3D:positions"]) == sum(j is not None for j in d["pose"])
+    assert "wrote" in res.stderr and str(rrd) in res.stderr
 
 
 def test_a_head_box_without_a_face_or_pose_head_is_one_clear_error(tmp_path):

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..estimators.segment.geometric import GeometricParams, segment_geometric
 from ..frames import FrameRef
-from ..geometry import mask_pixel_counts, object_positions
+from ..geometry import ObjectPositions, mask_pixel_counts, object_positions
 from ..params import param
 from .base import DepthMap, FrameObjects, ObjectsBackend
 from .oracle_noise import frame_rng
@@ -46,7 +46,9 @@ class MaskObjects(ObjectsBackend):
         image (-1 = none), and optional scores (M,) or (n_labels,) (None: the measured fraction)."""
         raise NotImplementedError
 
-    def objects(self, frame: FrameRef, depth: DepthMap) -> FrameObjects:
+    def placed(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray | None, ObjectPositions]:
+        """The masks at the depth map's resolution (`masks`' forms), their scores, and the positions of
+        those kept (`ObjectPositions.index`: which masks): the objects' masks as `objects` places them."""
         masks, scores = self.masks(frame, depth)
         H, W = depth.depth.shape
         if masks.shape[-2:] != (H, W):  # a segmenter working at its own resolution
@@ -56,8 +58,12 @@ class MaskObjects(ObjectsBackend):
             else:
                 masks = cv2.resize(masks.astype(np.int32), (W, H), interpolation=cv2.INTER_NEAREST)
         measured = self.p.median_pixels == "measured"
-        pos = object_positions(depth.depth, frame.K, masks, valid=depth.valid if measured else None,
-                               min_points=self.p.min_points)
+        return masks, scores, object_positions(depth.depth, frame.K, masks, valid=depth.valid if measured else None,
+                                               min_points=self.p.min_points)
+
+    def objects(self, frame: FrameRef, depth: DepthMap) -> FrameObjects:
+        masks, scores, pos = self.placed(frame, depth)
+        measured = self.p.median_pixels == "measured"
         if scores is None:  # the fraction of the mask with measured depth, whichever pixels the median used
             n_measured = pos.n_valid if measured else mask_pixel_counts(masks, depth.valid)[pos.index]
             score = n_measured / np.maximum(pos.area, 1)
