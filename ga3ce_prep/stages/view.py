@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -75,13 +75,19 @@ class OracleView(ViewBackend):
 
     def view(self, frame: FrameRef) -> np.ndarray:
         p = self.p
-        rec = truth_frame(p.truth, frame.id, maps=False)
-        gaze = np.asarray(rec.gaze, np.float64)
-        if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
-            raise FrameError(f"truth gaze of frame {frame.id} is not a direction")
+        rec, gaze = truth_gaze(p.truth, frame)
         head = getattr(rec, "head_dir", None)
-        return noisy_view(normalize(gaze), None if head is None else np.asarray(head, np.float64),
+        return noisy_view(gaze, None if head is None else np.asarray(head, np.float64),
                           frame_rng(p.seed, "view/oracle", frame.id), p.mean_error_deg, p.head_weight)
+
+
+def truth_gaze(truth: Path, frame: FrameRef) -> tuple[Any, np.ndarray]:
+    """The frame's truth record and its unit gaze (3,); FrameError when the gaze is no direction."""
+    rec = truth_frame(truth, frame.id, maps=False)
+    gaze = np.asarray(rec.gaze, np.float64)
+    if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
+        raise FrameError(f"truth gaze of frame {frame.id} is not a direction")
+    return rec, normalize(gaze)
 
 
 def turn_from_camera(head_dir: np.ndarray, head_center: np.ndarray) -> float:
@@ -123,12 +129,9 @@ class TurnOracleView(ViewBackend):
 
     def view(self, frame: FrameRef) -> np.ndarray:
         p = self.p
-        rec = truth_frame(p.truth, frame.id, maps=False)
-        gaze = np.asarray(rec.gaze, np.float64)
-        if not np.all(np.isfinite(gaze)) or np.linalg.norm(gaze) < 1e-9:
-            raise FrameError(f"truth gaze of frame {frame.id} is not a direction")
+        rec, gaze = truth_gaze(p.truth, frame)
         head = np.asarray(rec.head_dir, np.float64)
-        return noisy_view(normalize(gaze), head, frame_rng(p.seed, "view/oracle", frame.id),
+        return noisy_view(gaze, head, frame_rng(p.seed, "view/oracle", frame.id),
                           self.mean_error_deg(head, rec.head_center), p.head_weight)
 
 

@@ -63,6 +63,7 @@ def bundled_runs(root: Path) -> list[BundledRun]:
     inputs: dict[str, tuple[Path, list[str]]] = {
         "synthetic": (worlds["gfie"], SMALL),
         "synthetic-oracle": (worlds["gfie"], []),
+        "synthetic-calibrated": (worlds["gfie"], SMALL),
         "synthetic-minisam": (worlds["gfie"], ["stages.objects.params.points_per_side=4"]),
         "synthetic-mobilesam": (worlds["gfie"], sam),
         "gfie": (worlds["gfie"], STAND_IN_SAM),
