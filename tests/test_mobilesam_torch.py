@@ -136,3 +136,22 @@ def test_backend_runs_the_checkpoint_and_names_it(synth_world):
                        ({"checkpoint": str(CKPT)}, "set runtime: torch")):
         with pytest.raises(ConfigError, match=key):
             cls(wrong, ctx).check()
+
+
+def test_depth_prompts_on_the_torch_runtime_keep_the_onnx_paths_masks(synth_world):
+    """prompts: depth with runtime: torch: the same prompts, the same masks as on ONNX Runtime."""
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.stages import backend_class
+    from ga3ce_prep.stages.base import BackendContext
+
+    ctx = BackendContext(synth_world)
+    cls = backend_class("objects", "mobilesam")
+    params = {"prompts": "depth", "prompt_boxes": True, "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0,
+              "box_nms_thresh": 1.0}
+    frame = next(iter(open_dataset("gfie", synth_world)))
+    depth = backend_class("depth", "oracle")({"truth": str(synth_world / "truth.h5")}, ctx).depth(frame)
+    masks, scores = cls({"runtime": "torch", "checkpoint": str(CKPT), **params}, ctx).masks(frame, depth)
+    ref_masks, ref_scores = cls({"encoder": str(ENC), "decoder": str(DEC), **params}, ctx).masks(frame, depth)
+    assert len(masks) == len(ref_masks) > 3
+    np.testing.assert_allclose(scores, ref_scores, atol=1e-5)
+    assert (masks != ref_masks).reshape(len(masks), -1).mean(axis=1).max() <= 1e-3

@@ -50,21 +50,24 @@ def test_the_grid_given_as_prompts_is_the_grid(segmenter):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
 
 
-def test_box_prompts_decode_the_single_mask_output():
-    """Box prompts give one candidate each, the decoder's token 0, beside the points' three (no
-    stability filter: random weights' box masks fail it)."""
+def test_box_prompts_are_decoded_with_their_click_and_corners():
+    """A batch of box prompts goes to the decoder as (click, corners); each gives the decoder's
+    multimask candidates, as a point does (no stability filter: random weights' box masks fail it)."""
     segmenter = MobileSamSegmenter(ENC, DEC, SegmenterOptions(**{**MANY, "stability_score_thresh": 0.0}))
     rgb = drawn_frame()
     boxes = np.array([[100.0, 80.0, 300.0, 260.0], [350.0, 200.0, 600.0, 470.0]])
     prompts = Prompts.at([[50.0, 400.0]]).cat(Prompts(0.5 * (boxes[:, :2] + boxes[:, 2:]), boxes))
     r = segmenter.segment(rgb, prompts=prompts)
-    assert r.n_prompts == 3 and r.n_candidates == len(r.masks) == 3 + 2
+    assert r.n_prompts == 3 and r.n_candidates == len(r.masks) == 3 * 3
     dec = segmenter.decoder
     dec.set_image(segmenter.encoder.embed(rgb))
     iou, _ = dec.predict_iou(*prompts.filter([1, 2]).decoder_inputs(rgb.shape[:2]))
     box_rows = np.flatnonzero(np.all(r.points[:, None] == prompts.points[1:], axis=-1).any(axis=1))
-    assert len(box_rows) == 2
-    np.testing.assert_allclose(np.sort(r.scores[box_rows]), np.sort(iou[:, 0]), atol=1e-6)
+    assert len(box_rows) == 6
+    np.testing.assert_allclose(np.sort(r.scores[box_rows]), np.sort(iou[:, 1:].ravel()), atol=1e-6)
+    # the same clicks without their boxes predict other IoUs
+    point_iou, _ = dec.predict_iou(*Prompts.at(prompts.points[1:]).decoder_inputs(rgb.shape[:2]))
+    assert np.abs(point_iou - iou).max() > 1e-3
 
 
 def test_prompts_need_the_full_image_crop_alone():

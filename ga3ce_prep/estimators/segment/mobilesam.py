@@ -36,7 +36,7 @@ from .mobilesam_runners import (
     open_onnx,
     verify_decoder,
 )
-from .prompts import BOX_TOKENS, Prompts
+from .prompts import Prompts
 from .reuse import ReuseStep, SequenceReuse
 
 if TYPE_CHECKING:
@@ -272,11 +272,9 @@ class MobileSamSegmenter:
         resolution (the reference's `_process_batch`, IoU filter first). margin: lower the IoU and
         stability thresholds by this (the crop plan's, CropPlan.margin; 0 for the exact generator)."""
         opt = self.options
-        boxed = bool(batch.boxed.any())
-        # (k,): points 1..3, or a single-mask export's one mask; boxes the single-mask output
-        tokens = np.asarray(BOX_TOKENS if boxed else self.decoder.candidate_tokens)
+        tokens = np.asarray(self.decoder.candidate_tokens)                        # (k,): 1..3, or the one mask
         k = tokens.size
-        # Predict the IoUs of the candidates
+        # Predict the IoUs of the candidates (multimask outputs 1..3, or a single-mask export's one)
         with timer("decoder iou"):
             iou, state = self.decoder.predict_iou(*batch.decoder_inputs(crop.hw))
         iou = iou[:, tokens].reshape(-1).astype(np.float32)                        # (kB,) point-major

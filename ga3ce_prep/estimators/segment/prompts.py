@@ -1,13 +1,15 @@
-"""The prompts the generator decodes on one crop: `Prompts`, single points (segment-anything's grid)
-and boxes with a point inside them (depth_prompts.py), and how each kind is handed to the decoder.
+"""The prompts the generator decodes on one crop: `Prompts`, single points (segment-anything's grid,
+depth_prompts.py's clicks) and boxes with a point inside them, and how each kind is handed to the
+decoder.
 
 A point prompt is the click and the padding point, as the reference prompts the decoder
-(mobilesam_runners.single_point_prompts); its candidates are the decoder's `candidate_tokens`
-(the multimask outputs 1..3). A box prompt is the click (label 1) then the box's corners (labels 2
-and 3, segment-anything's `_embed_boxes`), three points and no padding, as SAM's ONNX example
-prompts a box with a point; its candidate is the single-mask output, token 0 (a box is not
-ambiguous; MobileSAMv2 decodes its box prompts so), which a single-mask export also returns for
-three points (mobilesam_runners.exported_token). Each decoder batch holds prompts of one kind.
+(mobilesam_runners.single_point_prompts). A box prompt is the click (label 1) then the box's
+corners (labels 2 and 3, segment-anything's `_embed_boxes`), three points and no padding, as SAM's
+ONNX example prompts a box with a point. Either kind's candidates are the decoder's
+`candidate_tokens`: the multimask outputs 1..3 (on the synthetic world they keep more true objects
+from box prompts than the single-mask output, token 0), or a single-mask export's one mask, which
+for three points is token 0 (mobilesam_runners.exported_token). Each decoder batch holds prompts of
+one kind.
 """
 from __future__ import annotations
 
@@ -18,7 +20,6 @@ import numpy as np
 from . import amg
 from .mobilesam_runners import single_point_prompts
 
-BOX_TOKENS: tuple[int, ...] = (0,)   # a box prompt's candidate: the single-mask output
 BOX_LABELS = np.array([1.0, 2.0, 3.0])   # the click, the box's top-left and bottom-right corners
 
 
