@@ -13,7 +13,9 @@ condition:
   - spurious: the share of stored positions with no true object of the frame within 20 cm
     (a wall, the floor, the person, or a misplaced median);
   - stored objects per frame, and seconds per frame of the objects stage (its compute time over the
-    frames it computed; the stages the conditions share are computed once, in one work folder).
+    frames it computed; the stages the conditions share are computed once, in one work folder). Each
+    condition runs one shard at a time (one worker process), so a frame's seconds are its own on the
+    machine's cores, not shared with another shard's.
 
     python benchmarks/objects_quality.py [--scenes 6 --frames-per-scene 8 --seed 2901] [--figure F.png]
 
@@ -77,15 +79,15 @@ def quality(reference, store) -> dict:
 
 def run_condition(name: str, pipeline: str, overrides: list[str], data: Path, out: Path, shard: int,
                   fresh: bool) -> tuple[Path, float | None]:
-    """The condition's store (computed unless cached) and its objects stage's seconds per frame
-    (None when every objects shard came from the cache)."""
+    """The condition's store (computed unless cached, one shard at a time) and its objects stage's
+    seconds per frame (None when every objects shard came from the cache)."""
     from ga3ce_prep.pipeline import run_pipeline
 
     store = out / f"{name.replace(' ', '-')}.zarr"
     if fresh:
         shutil.rmtree(store, ignore_errors=True)
     summary = run_pipeline(pipeline, data, store, shard_size=shard, work_dir=out / "work", overrides=overrides,
-                           progress=False, overwrite=True)
+                           workers=1, progress=False, overwrite=True)
     n = summary.computed_frames.get("objects", 0)
     return store, (summary.seconds_by_stage["objects"] / n if n else None)
 
@@ -161,6 +163,8 @@ def measure(out: Path, scenes: int, frames_per_scene: int, seed: int, only: str 
     if not (data / "truth.h5").is_file():
         generate("gfie", data, scenes=scenes, frames_per_scene=frames_per_scene, seed=seed, width=640, progress=False)
     names = only.split(",") if only else list(CONDITIONS)
+    if fresh:   # the stage cache too: a condition's objects served from it would have no seconds
+        shutil.rmtree(out / "work", ignore_errors=True)
     t = time.perf_counter()
     ref_path, _ = run_condition("reference", *REFERENCE, data, out, frames_per_scene, False)
     reference = open_store(ref_path)
