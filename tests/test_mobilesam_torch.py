@@ -53,6 +53,23 @@ def test_torch_decoder_gives_the_decoder_onnxs_ious_and_logits(segmenters):
     assert np.abs(got - ref_low[[3, 3, 5], [1, 3, 2]]).max() < 1e-4 and np.abs(ref_low).max() > 0.1
 
 
+def test_torch_decoder_embeds_box_corners_as_the_decoder_onnx(segmenters):
+    """Box prompts (click, then corners labelled 2 and 3: prompts.Prompts.decoder_inputs): the torch
+    decoder adds the corner embeddings as segment-anything's `_embed_boxes` and the ONNX export do."""
+    from ga3ce_prep.estimators.segment.prompts import Prompts
+
+    onnx_seg, torch_seg = segmenters
+    emb = onnx_seg.encoder.embed(drawn_frame())
+    boxes = np.array([[100.0, 80.0, 300.0, 260.0], [350.0, 200.0, 600.0, 470.0], [0.0, 0.0, 639.0, 479.0]])
+    coords, labels = Prompts(0.5 * (boxes[:, :2] + boxes[:, 2:]), boxes).decoder_inputs((480, 640))
+    ref_iou, ref_low = OfficialDecoder(DEC, ["CPUExecutionProvider"], 1)(
+        emb, coords, labels, (1024, 1024), outputs=("iou_predictions", "low_res_masks"))
+    torch_seg.decoder.set_image(emb)
+    iou, state = torch_seg.decoder.predict_iou(coords, labels)
+    assert np.abs(iou - ref_iou).max() < 1e-4
+    assert np.abs(torch_seg.decoder.low_res_masks(state, np.arange(3)) - ref_low).max() < 1e-4
+
+
 def test_torch_runtime_keeps_the_onnx_paths_masks(segmenters):
     """The whole generator, 640x480, 5x5 grid, permissive thresholds: the same candidates, and the
     kept masks within the tolerance the ONNX path holds against the reference order
@@ -119,3 +136,22 @@ def test_backend_runs_the_checkpoint_and_names_it(synth_world):
                        ({"checkpoint": str(CKPT)}, "set runtime: torch")):
         with pytest.raises(ConfigError, match=key):
             cls(wrong, ctx).check()
+
+
+def test_depth_prompts_on_the_torch_runtime_keep_the_onnx_paths_masks(synth_world):
+    """prompts: depth with runtime: torch: the same prompts, the same masks as on ONNX Runtime."""
+    from ga3ce_prep.datasets import open_dataset
+    from ga3ce_prep.stages import backend_class
+    from ga3ce_prep.stages.base import BackendContext
+
+    ctx = BackendContext(synth_world)
+    cls = backend_class("objects", "mobilesam")
+    params = {"prompts": "depth", "prompt_boxes": True, "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0,
+              "box_nms_thresh": 1.0}
+    frame = next(iter(open_dataset("gfie", synth_world)))
+    depth = backend_class("depth", "oracle")({"truth": str(synth_world / "truth.h5")}, ctx).depth(frame)
+    masks, scores = cls({"runtime": "torch", "checkpoint": str(CKPT), **params}, ctx).masks(frame, depth)
+    ref_masks, ref_scores = cls({"encoder": str(ENC), "decoder": str(DEC), **params}, ctx).masks(frame, depth)
+    assert len(masks) == len(ref_masks) > 3
+    np.testing.assert_allclose(scores, ref_scores, atol=1e-5)
+    assert (masks != ref_masks).reshape(len(masks), -1).mean(axis=1).max() <= 1e-3

@@ -130,3 +130,22 @@ def test_median_pixels_measured_or_completed_on_a_hand_made_mask(tmp_path):
     m11 = Fixed({"min_points": 11}, ctx).objects(frame, DepthMap(depth, valid))
     c11 = Fixed({"min_points": 11, "median_pixels": "completed"}, ctx).objects(frame, DepthMap(depth, valid))
     assert (len(m11.xyz), m11.n_dropped, len(c11.xyz), c11.n_dropped) == (0, 1, 1, 0)
+
+
+def test_geometric_segments_name_their_plane_pieces():
+    """A floor under a camera looking down at 45 degrees and a 30 cm box on it: the floor's pieces are
+    planes, the box a cluster (GeometricSegments.plane)."""
+    from ga3ce_prep.estimators.segment.geometric import GeometricParams, segment_geometric
+
+    H, W, f = 120, 160, 120.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ray = np.stack([(u - W / 2) / f, (v - H / 2) / f, np.ones_like(u)], axis=-1)
+    down = np.array([0.0, np.sqrt(0.5), np.sqrt(0.5)])        # the floor's normal points at the camera, 1.5 m away
+    depth = (1.5 / (ray @ down)).astype(np.float32)
+    box = (np.abs(u - W / 2) < 12) & (np.abs(v - H / 2) < 12)
+    depth[box] -= 0.3                                          # a box standing 30 cm proud of the floor
+    seg = segment_geometric(depth, K, GeometricParams(stride=2, drop_subject=False))
+    floor, top = seg.labels[5, 5], seg.labels[H // 2, W // 2]
+    assert floor >= 0 and top >= 0 and floor != top
+    assert seg.plane[floor] and not seg.plane[top] and len(seg.plane) == seg.labels.max() + 1

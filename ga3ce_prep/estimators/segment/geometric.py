@@ -20,7 +20,8 @@
 4. The subject: with `drop_subject`, the segment under the head box centre (the person whose gaze
    is estimated) is removed.
 
-Returns an (H, W) int32 label image, -1 = no segment, for `geometry.object_positions`. RANSAC is
+Returns the segments (`GeometricSegments`): an (H, W) int32 label image, -1 = no segment, for
+`geometry.object_positions`, and which labels are plane pieces (the rest are clusters). RANSAC is
 vectorised numpy with a generator seeded from the frame id, so a frame gives the same segments in
 every run whatever the sharding, scheduler or order. (Open3D 0.20's `segment_plane` is not
 reproducible run to run even with `o3d.utility.random.seed`: its parallel sampling depends on
@@ -98,24 +99,34 @@ def ransac_plane(pts: np.ndarray, distance: float, iterations: int,
     return nrm, float(-nrm @ centre)
 
 
-def _relabel_small(labels: np.ndarray, min_points: int) -> np.ndarray:
-    """Labels renumbered 0..k-1 in order of first appearance, segments under min_points -> -1."""
+@dataclass(frozen=True)
+class GeometricSegments:
+    """The segments of one frame: labels (H, W) int32, -1 = none, 0..k-1 = a segment; plane (k,)
+    bool, True for a connected piece of a RANSAC plane, False for a DBSCAN cluster."""
+
+    labels: np.ndarray
+    plane: np.ndarray
+
+
+def _relabel_small(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Labels renumbered 0..k-1 in order of first appearance, segments under min_points -> -1;
+    and (k,) the old label of each new one."""
     out = np.full_like(labels, -1)
     ok = labels >= 0
     if not ok.any():
-        return out
+        return out, np.zeros(0, labels.dtype)
     uniq, first, counts = np.unique(labels[ok], return_index=True, return_counts=True)
     big = counts >= min_points
     order = np.argsort(first[big], kind="stable")
     lut = np.full(int(labels.max()) + 1, -1, labels.dtype)
     lut[uniq[big][order]] = np.arange(int(big.sum()), dtype=labels.dtype)
     out[ok] = lut[labels[ok]]
-    return out
+    return out, uniq[big][order]
 
 
 def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed: int = 0,
-                      head_box: np.ndarray | None = None) -> np.ndarray:
-    """Label image (H, W) int32 of planes and clusters of the completed depth (module docstring).
+                      head_box: np.ndarray | None = None) -> GeometricSegments:
+    """The planes' pieces and the clusters of the completed depth (module docstring).
 
     depth: (H, W) float32 metres, 0 = unknown. K: (3, 3). head_box: (4,) x1, y1, x2, y2 pixels of
     the subject (for drop_subject). seed: RANSAC seed (derive it from the frame id).
@@ -177,7 +188,7 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
         sub_labels[good & (banded[np.maximum(sub_labels, 0)] > p.band_frac * size[np.maximum(sub_labels, 0)])] = -1
     good = sub_labels >= 0
     labels[rest[good]] = sub_labels[good] + next_label
-    grid[gv, gu] = _relabel_small(labels, int(p.min_segment_points))
+    grid[gv, gu], old = _relabel_small(labels, int(p.min_segment_points))
 
     # nearest-neighbour upsampling: pixel (v, u) belongs to grid cell ((v - off + s/2) // s, ...)
     cell_v = np.clip((np.arange(H) - off + s // 2) // s, 0, len(vs) - 1)
@@ -191,4 +202,4 @@ def segment_geometric(depth: np.ndarray, K: np.ndarray, p: GeometricParams, seed
         c = grid[cell_v[cv], cell_u[cu]]
         if c >= 0:
             full[full == c] = -1
-    return full
+    return GeometricSegments(full, old < next_label)   # plane pieces took the labels below next_label

@@ -8,7 +8,8 @@ encoder, the fast and official decoders, both a `MaskDecoder`), or, `MobileSamSe
 (`runtime: torch`, mobilesam_torch.py), MobileSAM's own torch modules read from the official
 checkpoint `mobile_sam.pt`, on the CPU or a CUDA device. Each crop's steps run through a `CropPlan`
 (crop_plan.py): the exact generator's `EXACT` (every prompt), or reuse.SequenceReuse (reuse across
-the frames of a static camera).
+the frames of a static camera). The prompts of a crop are segment-anything's point grid, or, on the
+full image, the caller's (prompts.Prompts: points and boxes; depth_prompts.py makes them from depth).
 """
 from __future__ import annotations
 
@@ -33,9 +34,9 @@ from .mobilesam_runners import (
     check_rgb,
     mask_mode,
     open_onnx,
-    single_point_prompts,
     verify_decoder,
 )
+from .prompts import Prompts
 from .reuse import ReuseStep, SequenceReuse
 
 if TYPE_CHECKING:
@@ -56,7 +57,7 @@ class Segmentation:
     timings: seconds per step (summed over the decoding threads).
     n_candidates: the masks decoded (they passed the IoU filter).
     n_mask_prompts: the prompts whose masks were decoded.
-    n_prompts: the prompts decoded (the whole grid, fewer on a reuse frame).
+    n_prompts: the prompts decoded (the whole grid or the prompts given, fewer on a reuse frame).
     reuse: what reuse did on this frame (reuse.ReuseStep), None without reuse."""
 
     masks: np.ndarray
@@ -174,20 +175,23 @@ class MobileSamSegmenter:
 
     # ------------------------------------------------------------------------------------------
     def segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None = None,
-                reuse: SequenceReuse | None = None) -> Segmentation:
+                reuse: SequenceReuse | None = None, prompts: Prompts | None = None) -> Segmentation:
         """Segment everything in an (H, W, 3) uint8 RGB image. out_size = (h, w) of the returned masks
         (e.g. the depth map's; default the image's). Filters run at the image resolution, as the
         reference's; the returned masks are the kept candidates' logits resampled to out_size.
         reuse: the camera sequence's state (reuse.SequenceReuse, `start`ed with this frame's
         cues): decode only the prompts whose neighbourhood changed since its key frame (full-image
-        crop only). Thread-safe (calls are serialised)."""
+        crop only). prompts: the image's prompts in its pixels in place of the point grid
+        (prompts.Prompts; full-image crop only). Thread-safe (calls are serialised)."""
         if reuse is not None and self.options.crop_n_layers:
             raise ConfigError("reuse covers the full-image crop only (crop_n_layers 0)")
+        if prompts is not None and self.options.crop_n_layers:
+            raise ConfigError("prompts replace the full-image crop's grid: crop_n_layers 0")
         with self._lock:
-            return self._segment(check_rgb(rgb), out_size, reuse)
+            return self._segment(check_rgb(rgb), out_size, reuse, prompts)
 
     def _segment(self, rgb: np.ndarray, out_size: tuple[int, int] | None,
-                 reuse: SequenceReuse | None = None) -> Segmentation:
+                 reuse: SequenceReuse | None = None, prompts: Prompts | None = None) -> Segmentation:
         """The generator's steps over the crops, as the reference's `_generate_masks` and
         `postprocess_small_regions`."""
         opt = self.options
@@ -199,7 +203,8 @@ class MobileSamSegmenter:
                  for i, ((x0, y0, x1, y1), layer) in enumerate(zip(boxes, layers))]
         grids = amg.layer_point_grids(opt.points_per_side, opt.crop_n_layers, opt.crop_n_points_downscale_factor)
         layer = EXACT if reuse is None else reuse
-        parts = [self._process_crop(rgb, crop, grids[crop.layer], timer, layer) for crop in crops]
+        parts = [self._process_crop(rgb, crop, Prompts.grid(grids[crop.layer], crop.hw) if prompts is None else prompts,
+                                    timer, layer) for crop in crops]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
         counts = sum((n for _, n in parts), _Counts())
         crop_boxes = np.array(boxes, np.int64)                                      # (crops, 4)
@@ -224,10 +229,10 @@ class MobileSamSegmenter:
                             n_candidates=counts.candidates, n_mask_prompts=counts.mask_prompts,
                             n_prompts=counts.prompts, reuse=None if reuse is None else reuse.last)
 
-    def _process_crop(self, rgb: np.ndarray, crop: amg.Crop, grid: np.ndarray, timer: amg.StepTimer,
+    def _process_crop(self, rgb: np.ndarray, crop: amg.Crop, prompts: Prompts, timer: amg.StepTimer,
                       layer: CropPlan = EXACT) -> tuple[amg.MaskRecords, _Counts]:
-        """One crop: encode, decode the grid (n, 2) in [0, 1]^2 in batches, in-crop NMS. Boxes and
-        points come back in image coordinates. `layer` plans the prompts to decode and merges their
+        """One crop: encode, decode the prompts (in the crop's pixels) in batches, in-crop NMS. Boxes
+        and points come back in image coordinates. `layer` plans the prompts to decode and merges their
         candidates with its own before NMS (CropPlan; EXACT: every prompt, nothing merged)."""
         x0, y0, x1, y1 = crop.box
         # Crop the image and calculate embeddings
@@ -235,19 +240,16 @@ class MobileSamSegmenter:
             emb = self.encoder.embed(rgb[y0:y1, x0:x1])
         with timer("decoder image"):
             self.decoder.set_image(emb)
-        # Get points for this crop
-        points = grid * np.array(crop.hw[::-1], np.float64)                       # (n, 2) crop pixels (x, y)
-        coords = amg.transform_coords(points, crop.hw)                                 # (n, 2) the 1024 frame
         with timer(layer.step):
-            plan = layer.plan(emb, coords)                                         # None: every prompt
-        prompts = np.arange(len(points)) if plan is None else np.flatnonzero(plan)
+            prompts, plan = layer.plan(emb, prompts)                               # plan None: every prompt
+        rows = np.arange(len(prompts)) if plan is None else np.flatnonzero(plan)
         margin = layer.margin
-        # Generate masks for this crop in batches (in parallel on 1-thread sessions), in batch order
-        step = self.decoder.batch_size or max(1, len(prompts))  # None: all at once; results do not depend on it
-        batches = [prompts[b0:b0 + step] for b0 in range(0, len(prompts), step)]
+        # Generate masks for this crop in batches of one prompt kind (in parallel on 1-thread sessions), in
+        # batch order; batch_size None: all at once; results do not depend on it
+        batches = prompts.batches(rows, self.decoder.batch_size)
 
         def decode(b: np.ndarray) -> tuple[amg.MaskRecords, _Counts]:
-            return self._decode_batch(coords[b], points[b], crop, timer, b, margin)
+            return self._decode_batch(prompts.filter(b), crop, timer, b, margin)
 
         parts = list(self._pool.map(decode, batches)) if self._pool else [decode(b) for b in batches]
         data = amg.MaskRecords.empty().cat(*(records for records, _ in parts))
@@ -263,10 +265,9 @@ class MobileSamSegmenter:
         data = replace(data, box=data.box + np.tile(shift, 2), point=data.point + shift)
         return data, sum((n for _, n in parts), _Counts())
 
-    def _decode_batch(self, coords: np.ndarray, points: np.ndarray, crop: amg.Crop, timer: amg.StepTimer,
+    def _decode_batch(self, batch: Prompts, crop: amg.Crop, timer: amg.StepTimer,
                       prompts: np.ndarray, margin: float = 0.0) -> tuple[amg.MaskRecords, _Counts]:
-        """One batch of grid points, coords (B, 2) in the 1024 frame, points (B, 2) in crop pixels and
-        prompts (B,) their indices in the crop's grid:
+        """One batch of prompts of one kind in crop pixels, and prompts (B,) their indices in the crop's:
         predicted IoUs, then masks only for the candidates that pass, filtered at the crop's
         resolution (the reference's `_process_batch`, IoU filter first). margin: lower the IoU and
         stability thresholds by this (the crop plan's, CropPlan.margin; 0 for the exact generator)."""
@@ -275,7 +276,7 @@ class MobileSamSegmenter:
         k = tokens.size
         # Predict the IoUs of the candidates (multimask outputs 1..3, or a single-mask export's one)
         with timer("decoder iou"):
-            iou, state = self.decoder.predict_iou(*single_point_prompts(coords))
+            iou, state = self.decoder.predict_iou(*batch.decoder_inputs(crop.hw))
         iou = iou[:, tokens].reshape(-1).astype(np.float32)                        # (kB,) point-major
         # Filter by predicted IoU
         with timer("filters"):
@@ -288,7 +289,7 @@ class MobileSamSegmenter:
         del state
         n = cand.size
         data = amg.MaskRecords(iou=iou[cand], stability=np.full(n, np.nan, np.float32),   # stability and
-                               box=np.zeros((n, 4), np.int64), point=points[cand // k],   # box: at full res
+                               box=np.zeros((n, 4), np.int64), point=batch.points[cand // k],   # box: full res
                                low_res=low_res, crop_index=np.full(n, crop.index, np.int64),
                                prompt=np.asarray(prompts, np.int64)[cand // k])
         # Filter at the crop's resolution, 32 masks at a time (bounded memory)

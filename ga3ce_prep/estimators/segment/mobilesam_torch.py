@@ -115,8 +115,9 @@ class TorchDecoder:
             self._pe = self.sam.prompt_encoder.get_dense_pe()
 
     def predict_iou(self, point_coords: np.ndarray, point_labels: np.ndarray):
-        """point_coords (B, N, 2) in the 1024 frame, point_labels (B, N) (1 fg, 0 bg, -1 padding; the
-        generator passes each point with its padding point, as the ONNX export is prompted) ->
+        """point_coords (B, N, 2) in the 1024 frame, point_labels (B, N) (1 fg, 0 bg, -1 padding, 2 and 3 a
+        box's corners; the generator passes each point with its padding point, and a box as its click
+        and corners, as the ONNX export is prompted) ->
         (iou_predictions (B, 4) float32, the low-res logits (B, 4, 256, 256) on the device)."""
         import torch
 
@@ -130,6 +131,8 @@ class TorchDecoder:
             for c0 in range(0, len(coords), self.chunk):
                 c, lab = coords[c0:c0 + self.chunk], labels[c0:c0 + self.chunk]
                 sparse = pe._embed_points(c, lab, pad=False)                          # (b, N, 256)
+                for corner in (2, 3):   # the box corners' embeddings (_embed_boxes'), as the ONNX export adds them
+                    sparse = sparse + (lab == corner)[..., None] * pe.point_embeddings[corner].weight
                 dense = pe.no_mask_embed.weight.reshape(1, -1, 1, 1).expand(len(c), -1, *pe.image_embedding_size)
                 low, iou = dec.predict_masks(self._emb, self._pe, sparse, dense)      # (b, 4, 256, 256), (b, 4)
                 lows.append(low)

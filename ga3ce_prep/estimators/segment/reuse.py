@@ -14,23 +14,25 @@ the changed 16x16-pixel cells of the padded 1024 input (the encoder's 64x64 grid
 - person: the head and body boxes of this frame and of the key frame, grown by
   `reuse_person_margin` cells.
 
-A prompt is decoded again when a changed cell lies within `reuse_neighbourhood` cells of it, or
-when its candidate that won the key frame's NMS covers a changed cell (a mask the person now
-crosses or left: the wall behind them); every other prompt keeps its key-frame candidates. Only
-NMS winners count, so a wall's hundred duplicate prompts are not all decoded again: the winner's
-new mask still comes first in NMS (same score, earlier prompt). A key-frame candidate that is not
-decoded again but whose own mask reaches into a changed cell is dropped rather than reused: it is
-stale (the duplicate of a winner that was decoded again and may have changed, so nothing would
-suppress it). The merged candidates, in prompt order as the exact generator lists them, then go
-through NMS as usual. A candidate whose predicted IoU or stability score lies within
+A prompt is decoded again when a changed cell lies within `reuse_neighbourhood` cells of it (of its
+box, for a box prompt), or when its candidate that won the key frame's NMS covers a changed cell (a
+mask the person now crosses or left: the wall behind them); every other prompt keeps its key-frame
+candidates. Only NMS winners count, so a wall's hundred duplicate prompts are not all decoded again:
+the winner's new mask still comes first in NMS (same score, earlier prompt). A key-frame candidate
+that is not decoded again but whose own mask reaches into a changed cell is dropped rather than
+reused: it is stale (the duplicate of a winner that was decoded again and may have changed, so
+nothing would suppress it). The merged candidates, in prompt order as the exact generator lists
+them, then go through NMS as usual. A candidate whose predicted IoU or stability score lies within
 `reuse_score_margin` of its filter's threshold on the key frame may pass on one frame and fail on
 the next from sensor noise alone; the key frame therefore also decodes the candidates within the
 margin below the thresholds, and a prompt is decoded on every frame when such a candidate of it won
 the key frame's NMS or, below the threshold, would have won it (no winner with a higher score
-suppresses it). A frame is a key frame (all prompts decoded, the state renewed) when it is the
-sequence's first, follows a gap in raw frame numbers, comes `reuse_max_age` frames after the key
-frame, or would decode more than `reuse_max_changed` of the prompts. The full-image crop only
-(crop_n_layers 0).
+suppresses it). The prompts are the key frame's (the grid's are every frame's); a frame's own
+prompts that the key frame lacks (depth prompts move with sensor noise) are added, and decoded,
+where they reach a changed cell: an object the person uncovered. A frame is a key frame (all prompts
+decoded, the state renewed) when it is the sequence's first, follows a gap in raw frame numbers,
+comes `reuse_max_age` frames after the key frame, or would decode more than `reuse_max_changed` of
+the prompts. The full-image crop only (crop_n_layers 0).
 """
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...params import param
 from . import amg
+from .prompts import Prompts
 
 CELL = 16   # pixels of the 1024 input per embedding cell
 GRID = 64   # embedding cells per side
@@ -127,6 +130,7 @@ class _Key:
     mean_norm: float           # mean over cells of the embedding's L2 norm
     depth: np.ndarray | None   # (h, w) float32 metres
     person: np.ndarray         # (64, 64) bool cells of the key frame's person boxes
+    prompts: Prompts           # the key frame's prompts (`prompt` of the records indexes them)
     records: amg.MaskRecords   # the candidates that passed the filters, before NMS, `prompt` set
     cells: np.ndarray          # (n, 64, 64) bool cells each of `records`' masks covers
     won: np.ndarray            # (w,) int64 prompts of the candidates that won the key frame's NMS
@@ -164,6 +168,21 @@ def mask_cells(low_res: np.ndarray) -> np.ndarray:
     return np.asarray((low_res > 0.0).reshape(len(low_res), GRID, f, GRID, f).any(axis=(2, 4)))
 
 
+def prompt_reaches(prompts: Prompts, cells: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+    """(n,) bool: prompts (in image pixels) whose point, or for a box prompt any cell of its box,
+    lies in a True cell of cells (64, 64)."""
+    cell = np.clip(np.floor(amg.transform_coords(prompts.points, image_hw) / CELL).astype(np.int64), 0, GRID - 1)
+    out = cells[cell[:, 1], cell[:, 0]]                                            # (n,) the point's cell
+    boxed = np.flatnonzero(prompts.boxed)
+    if len(boxed):   # any True cell in the box: a summed-area table of the cells
+        box = np.clip(np.floor(amg.transform_coords(prompts.boxes[boxed].reshape(-1, 2, 2), image_hw) / CELL)
+                      .astype(np.int64), 0, GRID - 1).reshape(-1, 4)
+        sat = np.pad(cells.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        x1, y1, x2, y2 = box.T + np.array([[0], [0], [1], [1]])
+        out[boxed] |= (sat[y2, x2] - sat[y1, x2] - sat[y2, x1] + sat[y1, x1]) > 0
+    return out
+
+
 def dilate(cells: np.ndarray, r: int) -> np.ndarray:
     """(64, 64) bool grown by r cells (a (2r+1)^2 square)."""
     if r == 0:
@@ -188,8 +207,9 @@ class SequenceReuse:
         self.last: ReuseStep | None = None
         self._person: np.ndarray | None = None
         self._changed: np.ndarray | None = None
-        self._plan: np.ndarray | None = None       # this frame's plan and embedding, for merge
+        self._plan: np.ndarray | None = None       # this frame's plan, embedding and prompts, for merge
         self._embedding: np.ndarray | None = None
+        self._prompts: Prompts | None = None
 
     def start(self, cues: FrameCues) -> None:
         """The frame about to be segmented."""
@@ -209,27 +229,30 @@ class SequenceReuse:
             changed |= (n > 0) & (np.abs(shift) > self.p.reuse_depth_change)
         return changed | self._person | k.person
 
-    def plan(self, embedding: np.ndarray, coords: np.ndarray) -> np.ndarray | None:
-        """embedding (1, 256, 64, 64), the grid prompts coords (n, 2) in the 1024 frame -> (n,) bool
-        prompts to decode, or None for a key frame (decode all)."""
+    def plan(self, embedding: np.ndarray, prompts: Prompts) -> tuple[Prompts, np.ndarray | None]:
+        """embedding (1, 256, 64, 64), the frame's prompts in image pixels -> the prompts of the frame
+        (a key frame's: these; else the key frame's, then those of these that the key frame lacks and
+        that reach a changed cell) and (m,) bool those to decode, None for a key frame (decode all)."""
         c, k = self.cues, self.key
         assert c is not None, "start(cues) before the frame is segmented"
         reason = ("first" if k is None or k.image_hw != c.image_hw else
                   "gap" if self.last_index is None or c.index != self.last_index + 1 else
                   "age" if self.age + 1 >= self.p.reuse_max_age else "")
-        decode = None
+        decode, planned = None, prompts
         if not reason:
             assert k is not None  # no reason: a key frame to reuse
             changed = self._changed = self.changed_cells(embedding)
-            cell = np.clip(np.floor(coords / CELL).astype(np.int64), 0, GRID - 1)     # (n, 2) x, y
-            decode = dilate(changed, self.p.reuse_neighbourhood)[cell[:, 1], cell[:, 0]]
+            near = dilate(changed, self.p.reuse_neighbourhood)
+            new = prompts.filter(~_rows_in(prompts, k.prompts))
+            planned = k.prompts.cat(new.filter(prompt_reaches(new, near, c.image_hw)))
+            decode = prompt_reaches(planned, near, c.image_hw)
             decode[k.won[k.footprint[:, changed].any(axis=1)]] = True
             decode[k.near] = True
             if decode.mean() > self.p.reuse_max_changed:
-                reason, decode = "changed", None
+                reason, decode, planned = "changed", None, prompts
         self.last = ReuseStep(decode is None, reason, 1.0 if decode is None else float(decode.mean()))
-        self._plan, self._embedding = decode, embedding
-        return decode
+        self._plan, self._embedding, self._prompts = decode, embedding, planned
+        return planned, decode
 
     @property
     def margin(self) -> float:
@@ -241,8 +264,8 @@ class SequenceReuse:
         """The frame's candidates before NMS: on a key frame those of `decoded` that pass the
         generator's filters (`options`; decoded at `margin`), kept as the new key with the near
         misses; else the key's candidates of the prompts not decoded plus `decoded`, in prompt order."""
-        c, plan, embedding = self.cues, self._plan, self._embedding
-        assert c is not None and embedding is not None, "merge() follows plan()"
+        c, plan, embedding, prompts = self.cues, self._plan, self._embedding, self._prompts
+        assert c is not None and embedding is not None and prompts is not None, "merge() follows plan()"
         self._embedding = None
         if plan is None:
             assert self._person is not None  # set by start()
@@ -253,8 +276,9 @@ class SequenceReuse:
             emb = np.ascontiguousarray(embedding.reshape(-1, GRID, GRID), np.float32)
             self.key = _Key(c.index, c.image_hw, emb, float(np.linalg.norm(emb, axis=0).mean()),
                             None if c.depth is None else np.array(c.depth, np.float32), self._person,
-                            out, mask_cells(out.low_res), np.zeros(0, np.int64), np.zeros((0, GRID, GRID), bool),
-                            near[passes], decoded.filter(~passes), np.zeros(0, np.int64), options)
+                            prompts, out, mask_cells(out.low_res), np.zeros(0, np.int64),
+                            np.zeros((0, GRID, GRID), bool), near[passes], decoded.filter(~passes),
+                            np.zeros(0, np.int64), options)
             self.age = 0
         else:
             k = self.key
@@ -293,3 +317,12 @@ class SequenceReuse:
             near = np.concatenate([k.records.prompt[keep[k.near_pass[keep]]], both.prompt[wins[wins >= len(keep)]]])
             self.key = replace(k, won=k.records.prompt[keep], footprint=k.cells[keep], near=np.unique(near))
 
+
+
+def _rows_in(prompts: Prompts, others: Prompts) -> np.ndarray:
+    """(n,) bool: the prompts equal to one of `others` (the same point and box)."""
+    def rows(p: Prompts) -> np.ndarray:
+        return np.nan_to_num(np.concatenate([p.points, p.boxes], axis=1), nan=-1.0)
+
+    have = {r.tobytes() for r in rows(others)}
+    return np.array([r.tobytes() in have for r in rows(prompts)], bool)
