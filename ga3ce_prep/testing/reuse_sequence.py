@@ -1,9 +1,9 @@
 """Exact vs reuse (`reuse: sequence`) segment-everything over one synthetic camera sequence, for
 the torch runtime's rows of `make bench-objects DEVICE=...` (benchmarks/bench_objects.py): seconds
 per frame of each (mean over the sequence, key frame included), the share of prompts decoded per
-frame in reuse mode, the key frames, and the agreement of P_object (per-mask median 3D points of the masks,
-measured depth): the share of exact objects with a reuse object within 2 cm and the reverse, pooled
-over the frames.
+frame in reuse mode, the key frames, and the agreement of P_object (per-mask median 3D points of
+the masks, measured depth): the share of exact objects with a reuse object within 2 cm and the
+reverse, pooled over the frames.
 
 What agreement to expect: the exact generator against itself on every `noise_every`-th frame with
 fresh sensor noise added (Gaussian, std sqrt(2) x the world's RGB noise: the size of the noise
@@ -11,7 +11,8 @@ difference between two frames), on the same depth. Which of a surface's near-tie
 wins NMS moves with such noise (docs/models/segment-everything.md, "Reuse across frames").
 
 The world: GFIE format, one scene of `frames` 640x480 frames (seed 6 or another), generated once
-into out/bench_objects_world_<frames>_seed<seed>/. Cues as the pipeline gives them: the measured depth and the frame's head box (GFIE has no body box).
+into out/bench_objects_world_<frames>_seed<seed>/. Cues as the pipeline gives them: the measured
+depth and the frame's head box (GFIE has no body box).
 """
 from __future__ import annotations
 
