@@ -18,6 +18,7 @@ from ga3ce_prep.model import ModelConfig
 from ga3ce_prep.testing.toy_store import ToyKnobs, write_toy_store
 from ga3ce_prep.train import ContextDataset, TrainConfig, ablate, train
 from ga3ce_prep.train.checkpoint import build_model, load_checkpoint
+from ga3ce_prep.train.evaluate import object_attention
 from ga3ce_prep.train.figures import choose_frames, figure_frames, make_figures
 from ga3ce_prep.train.report import ReportError, report
 
@@ -57,6 +58,35 @@ def test_figures_are_written(toy, tmp_path):
     app = make_figures(build_model(load_checkpoint(toy[2] / "appearance" / "seed0" / "best.pt")), ds, tmp_path / "app",
                        n=2)
     assert set(app) == {"qualitative", "egocentric"}
+
+
+def test_object_attention_weighs_the_gazed_object(toy):
+    """The figures of where the weight goes, against the model's own weights on one batch: every
+    frame gazes at its first object."""
+    store, run, abl = toy
+    model = build_model(load_checkpoint(run / "best.pt")).eval()
+    ds = ContextDataset(store, "test")
+    b = ds.batch(np.arange(len(ds)))
+    with torch.no_grad():
+        _, w = model.object_weights(b.view, b.pose, b.head_pos, b.objects, b.mask)
+    w, mask = w.numpy().astype(np.float64), b.mask.numpy()
+    has = mask[:, 0]
+    assert 0 < has.sum() < len(ds)                                    # the toy has frames without objects
+    a = object_attention(model, ds, np.where(has[:, None], b.objects.numpy()[:, 0], np.nan))
+    assert a["frames"] == len(ds) and a["at_object_frames"] == has.sum()
+    assert a["null"] == pytest.approx(w[:, 0].mean(), abs=1e-5)
+    assert a["null"] + a["objects"] == pytest.approx(1, abs=1e-5)
+    assert a["on_target"] == pytest.approx(w[has, 1].mean(), abs=1e-5)
+    objs = np.where(mask[has], w[has, 1:], -np.inf)
+    assert a["target_top"] == pytest.approx(np.mean(objs[:, 0] >= objs.max(1)))
+    assert a["chance_top"] == pytest.approx(np.mean(1 / mask[has].sum(1)))
+    n = mask[has].sum(1)
+    others = (w[has, 1:] * mask[has]).sum(1) - w[has, 1]
+    assert a["per_other"] == pytest.approx(np.nanmean(np.where(n > 1, others / np.maximum(n - 1, 1), np.nan)),
+                                           abs=1e-5)
+    assert object_attention(model, ds, np.full((len(ds), 3), np.nan))["at_object_frames"] == 0
+    no_objects = build_model(load_checkpoint(abl / "appearance" / "seed0" / "best.pt"))
+    assert object_attention(no_objects, ds, np.zeros((len(ds), 3))) is None   # nothing to weigh
 
 
 def test_choose_frames_spreads_over_the_errors():

@@ -122,7 +122,8 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     run folder as scored-<split>-<key>.json, the key naming the checkpoint's bytes, the store's
     fingerprint and the split, and read back while they hold. Per scored session: its frames and
     both 3D MAEs (`sessions`), for intervals over sessions (intervals.py); the same for the frames
-    whose gaze target is at a stored object and for the others (`target`)."""
+    whose gaze target is at a stored object and for the others (`target`); the weight the model
+    gives the null token, the objects and the gazed object (`attention`, evaluate.object_attention)."""
     import hashlib
 
     from ..store import open_store
@@ -132,7 +133,7 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
     fingerprint = store_fingerprint(open_store(store))
     key = hashlib.sha256(f"{file_sha256(checkpoint)}|{fingerprint}|{split}".encode()).hexdigest()[:16]
     path = Path(checkpoint).parent / f"scored-{split}-{key}.json"
-    if path.is_file() and "target" in (kept := json.loads(path.read_text())):
+    if path.is_file() and "attention" in (kept := json.loads(path.read_text())):
         return kept
     r = evaluate(str(store), checkpoint, split=split, cdf_path=None, no_objects=None, compare={}, threads=threads)
     m = r.methods["model"]
@@ -145,7 +146,9 @@ def ensure_scored(store: Path, checkpoint: Path, split: str, threads: int = 2) -
                           for name, g in m.per_scene.items()},
              # [frames, the model's 3D MAE, v's] where the gaze target is at a stored object, and elsewhere
              "target": {k: [getattr(m, k).n, getattr(m, k).mae3d, getattr(r.methods["view_prior"], k).mae3d]
-                        for k in ("at_object", "elsewhere")}}
+                        for k in ("at_object", "elsewhere")},
+             # where the model's weight goes: null token, objects, the gazed object (None without objects)
+             "attention": r.attention}
     path.write_text(json.dumps(score, indent=2, default=float))
     return score
 
@@ -269,7 +272,7 @@ def format_results(results: dict[str, Any]) -> str:
             seeds = " / ".join(f"{x:.2f}" for x in maes) if len(maes) > 1 else ""
             lines.append(f"  {label:30s} {mean:>14s}  {np.mean(maes) / prior:5.3f}  {seeds}".rstrip())
         if on == world:
-            lines += _curve_lines(results, world)
+            lines += _curve_lines(results, world) + _attention_lines(results, world)
     lines += _gain_lines(results)
     c = results["code"]
     lines += ["", f"machine: {describe(results['machine'])}; code {c['version']}"
@@ -291,6 +294,24 @@ def _curve_lines(results: dict[str, Any], world: str) -> list[str]:
         label = results["arms"][arm]["label"]
         lines.append(f"  {label:30s} {m['train_best']:6.2f} / {m['val_best']:5.2f}  {m['train_last']:5.2f} / "
                      f"{m['val_last']:5.2f}  " + " / ".join(str(int(c["best_epoch"])) for c in cs))
+    return lines
+
+
+def _attention_lines(results: dict[str, Any], world: str) -> list[str]:
+    """Per arm with objects, where its weight goes on the scored split (evaluate.object_attention),
+    mean over seeds: the null token (g0), the gazed object against each other one, and the share of
+    frames where the gazed object gets the most weight against uniform weights' share."""
+    by_arm: dict[str, list[dict[str, float]]] = {}
+    for s in results["scores"]:
+        if s["world"] == world and s["scored_on"] == world and s.get("attention"):
+            by_arm.setdefault(s["arm"], []).append(s["attention"])
+    if not by_arm:
+        return []
+    lines = [f"  {'weight (target at an object)':30s} {'null':>5s} {'gazed':>6s} {'other':>6s}  gazed most (uniform)"]
+    for arm, rows in by_arm.items():
+        m = {k: np.mean([r[k] for r in rows]) for k in ("null", "on_target", "per_other", "target_top", "chance_top")}
+        lines.append(f"  {results['arms'][arm]['label']:30s} {m['null']:5.2f} {m['on_target']:6.3f} "
+                     f"{m['per_other']:6.3f}  {m['target_top']:.0%} ({m['chance_top']:.0%})")
     return lines
 
 

@@ -104,6 +104,53 @@ def target_at_object(target: np.ndarray, objects: np.ndarray, mask: np.ndarray) 
         return (d.min(axis=1, initial=np.inf) < AT_OBJECT_M) & np.all(np.isfinite(target), axis=1)
 
 
+@torch.no_grad()
+def object_attention(model: GA3CE, ds: ContextDataset, target: np.ndarray, batch_size: int = 256,
+                     device: str | torch.device = "cpu", n_max: int | None = None) -> dict[str, float] | None:
+    """Where the model's weight goes (GA3CE.object_weights: the regress model's last decoder layer's
+    cross-attention over [null token, objects], mean over heads; the pointer's p over [g0,
+    objects]), over ds's frames; target (len(ds), 3) their gaze targets, metres.
+
+    Returns None for a model without objects, else: `frames`; `null`, `objects`: the mean weight of
+    the null token (g0's) and of all objects together; over the `at_object_frames` whose target is
+    within AT_OBJECT_M of a stored object, the one nearest it being the gazed object: `on_target`
+    (mean weight on it), `per_other` (mean weight per other object), `target_top` (share of frames
+    where it outweighs every other object) and `chance_top` (that share for uniform weights, the
+    mean of 1 / objects)."""
+    if not (model.config.use_context and model.config.use_objects):
+        return None
+    was_training = model.training
+    model.eval()
+    null, objects, on_target, per_other, top, chance = [], [], [], [], [], []
+    for idx in BucketBatchSampler(ds.obj_count, batch_size, shuffle=False).batches():
+        b = ds.batch(idx, n_max)
+        _, w = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
+        w = w.cpu().numpy().astype(np.float64)                          # (B, 1 + S)
+        mask = b.mask.numpy().astype(bool)[:, : w.shape[1] - 1]
+        obj = np.where(mask, w[:, 1:], 0.0)
+        null.append(w[:, 0])
+        objects.append(obj.sum(1))
+        d = np.linalg.norm(b.objects.numpy()[:, : w.shape[1] - 1] - target[idx, None, :], axis=-1)
+        d = np.where(mask, d, np.inf)
+        at = target_at_object(target[idx], b.objects.numpy(), b.mask.numpy())
+        if not at.any() or not obj.shape[1]:
+            continue
+        j = d.argmin(1)[at]
+        o, n = obj[at], mask[at].sum(1)
+        gazed = o[np.arange(len(o)), j]
+        on_target.append(gazed)
+        per_other.append(np.where(n > 1, (o.sum(1) - gazed) / np.maximum(n - 1, 1), np.nan))
+        top.append(gazed >= np.where(mask[at], o, -np.inf).max(1))
+        chance.append(1.0 / n)
+    model.train(was_training)
+    cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0)  # noqa: E731
+    k = len(cat(on_target))
+    mean = lambda xs: float(np.nanmean(cat(xs))) if k else float("nan")  # noqa: E731
+    return {"frames": len(ds), "null": float(cat(null).mean()), "objects": float(cat(objects).mean()),
+            "at_object_frames": k, "on_target": mean(on_target), "per_other": mean(per_other),
+            "target_top": mean(top), "chance_top": mean(chance)}
+
+
 def _padded_objects(ds: ContextDataset) -> tuple[np.ndarray, np.ndarray]:
     b = ds.batch(np.arange(len(ds)))
     return b.objects.numpy(), b.mask.numpy()
@@ -142,8 +189,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     (train/results.py): store, split, checkpoint, epoch, labels {method: its name in tables},
     n_frames (scored), frames (frameset.ScoredFrames: protocol, expected, scored, unscored {reason:
     [ids]}), head_sources, head_fallback_frames, snap_cone_deg, methods {name: MethodMetrics},
-    scene_columns, paper_rows, beats {baseline: bool}, ratio_to_prior, cdf_png, and gfm
-    (`evaluate_gfm`) when asked; json_path gets its `to_json()`.
+    scene_columns, paper_rows, beats {baseline: bool}, ratio_to_prior, attention
+    (`object_attention`), cdf_png, and gfm (`evaluate_gfm`) when asked; json_path gets its `to_json()`.
     """
     torch.set_num_threads(threads)
     st = store if isinstance(store, ContextStore) else open_store(store, verify=True)
@@ -189,6 +236,8 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
     preds["snap_to_object"], snapped = snap_to_object(ds.view, ds.head_pos, objects, mask, snap_cone_deg)
     at_object = target_at_object(np.asarray(st.frames["gaze_target"][ds.rows], np.float64), objects, mask)
 
+    attention = object_attention(model, ds, np.asarray(st.frames["gaze_target"][ds.rows], np.float64), batch_size,
+                                 device, ckpt["config"].get("n_max"))
     scene, columns = _scene_columns(st, profile, ds.scene)
     methods = {name: summarize(p, ds.gaze, scene, columns, fs.front, at_object) for name, p in preds.items()}
     model_mae = methods["model"].mae3d
@@ -208,7 +257,7 @@ def evaluate(store: ContextStore | str | Path, checkpoint: str | Path, split: st
         methods=methods, scene_columns=[c for c in columns if c in methods["model"].per_scene],
         paper_rows={label: dict(cells) for label, cells in profile.paper_rows} if fs.protocol == "windows" else {},
         beats={k: bool(model_mae < m.mae3d) for k, m in methods.items() if k != "model"},
-        ratio_to_prior=model_mae / methods["view_prior"].mae3d,
+        ratio_to_prior=model_mae / methods["view_prior"].mae3d, attention=attention,
     )
     if gfm is not None:
         result.gfm = evaluate_gfm(st, ds.rows, preds["model"], gfm, data, device, gfm_batch_size)
@@ -275,6 +324,14 @@ def format_scene_table(result: EvalResult) -> list[str]:
     return lines
 
 
+def format_attention(a: dict[str, float]) -> str:
+    """One line of `object_attention`'s figures."""
+    return (f"weight: null token (g0) {a['null']:.2f}, objects {a['objects']:.2f}; where the target is at an "
+            f"object ({a['at_object_frames']} frames): the gazed object {a['on_target']:.3f}, each other "
+            f"{a['per_other']:.3f}, "
+            f"the most of any object {a['target_top']:.0%} (uniform weights: {a['chance_top']:.0%})")
+
+
 def format_eval_table(result: EvalResult, per_scene: bool = True) -> str:
     """The evaluation as plain-text tables: which frames, methods, per scene, and the verdict on each baseline."""
     m, model = result.methods, result.model
@@ -302,6 +359,8 @@ def format_eval_table(result: EvalResult, per_scene: bool = True) -> str:
                      f"{model.mae3d:.2f} vs {m[key].mae3d:.2f} deg ({d:+.2f}"
                      + (f", objects {'add' if d > 0 else 'cost'} {abs(d) / m[key].mae3d:.0%})"
                         if key == "no_objects" else ")"))
+    if a := result.attention:
+        lines.append(format_attention(a))
     if per_scene and (len(result.scene_columns) > 1 or result.paper_rows):
         lines += ["", *format_scene_table(result)]
     if result.gfm is not None:

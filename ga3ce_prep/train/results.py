@@ -67,8 +67,10 @@ class EvalResult:
     windows only). beats {method key: the model's 3D MAE is below it}; ratio_to_prior: the model's
     3D MAE / the view prior's. no_objects_checkpoint, compared_checkpoints {key: path}: the other
     checkpoints scored. gfm: GFIE's Table 1 columns (train/gfm.py `evaluate_gfm`) when asked;
-    cdf_png: the CDF plot written; json: the JSON file written (neither in the JSON itself unless
-    written before it: cdf_png is, json is not).
+    attention: the model's weight on the null token, on the objects and on the gazed object
+    (evaluate.object_attention), None for a model without objects; cdf_png: the CDF plot written;
+    json: the JSON file written (neither in the JSON itself unless written before it: cdf_png is,
+    json is not).
     """
 
     store: str
@@ -92,6 +94,7 @@ class EvalResult:
     paper_rows: dict[str, dict[str, Any]]
     beats: dict[str, bool]
     ratio_to_prior: float
+    attention: dict[str, float] | None = None   # where the model's weight goes (evaluate.object_attention)
     gfm: dict[str, Any] | None = None
     cdf_png: str | None = None
     json: str | None = None
@@ -102,8 +105,8 @@ class EvalResult:
         return self.methods["model"]
 
     def to_json(self) -> dict[str, Any]:
-        """The JSON form (`eval --json`): every field but `json`, in this order; gfm and cdf_png
-        only when set. Values as they are (numpy scalars included: write with default=float)."""
+        """The JSON form (`eval --json`): every field but `json`, in this order; attention, gfm
+        and cdf_png only when set. Values as they are (numpy scalars included: write with default=float)."""
         out: dict[str, Any] = {
             "store": self.store, "split": self.split, "checkpoint": self.checkpoint, "epoch": self.epoch,
             "no_objects_checkpoint": self.no_objects_checkpoint, "compared_checkpoints": self.compared_checkpoints,
@@ -114,6 +117,8 @@ class EvalResult:
             "methods": {key: m.to_json() for key, m in self.methods.items()}, "scene_columns": self.scene_columns,
             "paper_rows": self.paper_rows, "beats": self.beats, "ratio_to_prior": self.ratio_to_prior,
         }
+        if self.attention is not None:
+            out["attention"] = self.attention
         if self.gfm is not None:
             out["gfm"] = self.gfm
         if self.cdf_png is not None:
