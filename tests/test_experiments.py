@@ -96,7 +96,7 @@ def test_declarations_are_checked():
     with pytest.raises(ConfigError, match="share a folder"):
         tiny(arms=(Arm("full"), Arm("full", recipe={"lr": 1e-3})))
     d = demo_experiment()
-    assert [a.row for a in d.arms] == ["full", "no-objects", "ours"] and d.worlds["synthetic"].sessions == 4
+    assert [a.row for a in d.arms] == ["full", "no-objects", "ours"] and d.worlds["calibrated"].sessions == 4
     assert set(EXPERIMENTS) >= {"demo", "paper-tables"}
     assert World.from_json(TINY.to_json()) == TINY
     # an arm's model fields go on top of its row's, a world's frame cap into the recipe
@@ -130,11 +130,11 @@ def test_a_dataset_the_old_demo_wrote_is_reused(tmp_path):
     (data / "truth.h5").write_text("")
     (data / "demo-params.json").write_text(json.dumps({"fmt": "gfie", "scenes": 48, "sessions_per_room": 4,
                                                        "frames_per_scene": 15, "seed": 0}))
-    assert demo.worlds["synthetic"].ensure_data(data) == data
-    assert json.loads((data / "world.json").read_text()) == demo.worlds["synthetic"].synth_params()
+    assert demo.worlds["calibrated"].ensure_data(data) == data
+    assert json.loads((data / "world.json").read_text()) == demo.worlds["calibrated"].synth_params()
     (data / "world.json").unlink()
     with pytest.raises(Exception, match="other contents"):
-        demo_experiment(seed=1).worlds["synthetic"].ensure_data(data)
+        demo_experiment(seed=1).worlds["calibrated"].ensure_data(data)
 
 
 def test_results_carry_each_session_and_gains_have_intervals(done):

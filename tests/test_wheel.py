@@ -160,4 +160,4 @@ def test_the_demo_runs_from_the_wheel(installed):
         seen, transfer = map(float, line.split()[-2:])
         assert 0 < seen < 180 and 0 < transfer < 180, line
     assert "its no-objects ablation on the seen rooms here" in out
-    assert (installed.empty / "demo" / "runs" / "demo" / "synthetic" / "full" / "seed0" / "best.pt").is_file()
+    assert (installed.empty / "demo" / "runs" / "demo" / "calibrated" / "full" / "seed0" / "best.pt").is_file()
