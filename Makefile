@@ -83,7 +83,7 @@ bench-objects: setup
 ## on one world's frames: recall within 5/10/20 cm, spurious positions, objects and seconds per frame (under the
 ## CPU lock, which it takes itself).
 bench-objects-quality: setup models
-	$(PY) benchmarks/objects_quality.py --figure docs/img/objects_quality_masks.png
+	$(PY) benchmarks/objects_quality.py --figure docs/img/objects_quality_depth_masks.png
 ## make bench-scale: frames/s on 1 and 2 local workers and on dask scheduler + workers; GFIE/GAFA projections.
 bench-scale: setup models
 	$(PY) benchmarks/bench_scale.py
