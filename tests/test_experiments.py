@@ -196,3 +196,17 @@ def test_a_gain_splits_by_where_the_target_is():
     assert split["at_object"] == (pytest.approx(1 - 17 / 20), 30) and split["elsewhere"] == (pytest.approx(-0.05), 10)
     del r["scores"][0]["target"]
     assert target_gains(r, ["w"], "a", "b") == {}
+
+
+def test_a_results_file_names_no_machine_paths(tmp_path, monkeypatch):
+    """Paths in a results record, keys included, come out relative to the output folder, the
+    package or the registry's model cache; others stay as they are."""
+    from ga3ce_prep.experiments.experiment import portable
+
+    monkeypatch.setenv("GA3CE_MODELS", str(tmp_path / "models"))
+    out = tmp_path / "out"
+    record = {"store": str(out / "w.zarr"), "stages": [{"models": {str(tmp_path / "models" / "m-1" / "a.onnx"): "ab"}}],
+              "pipeline": str(Path(portable.__code__.co_filename).parents[1] / "pipelines" / "synthetic.yaml"),
+              "data": "/elsewhere/x"}
+    assert portable(record, out) == {"store": "w.zarr", "stages": [{"models": {"{models cache}/m-1/a.onnx": "ab"}}],
+                                     "pipeline": "ga3ce_prep/pipelines/synthetic.yaml", "data": "/elsewhere/x"}

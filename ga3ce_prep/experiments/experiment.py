@@ -166,17 +166,21 @@ def training_curve(run: Path) -> dict[str, float]:
 
 
 def portable(value: Any, out: Path) -> Any:
-    """`value` (a results record) with every absolute path under `out` written relative to it, and
-    every one inside this package relative to the package's folder ("ga3ce_prep/pipelines/..."),
-    so a results file reads the same on any machine and can be kept beside a study."""
+    """`value` (a results record) with every absolute path (values and keys) under `out` written
+    relative to it, every one inside this package relative to the package's folder
+    ("ga3ce_prep/pipelines/..."), and every one in the registry's model cache as "{models
+    cache}/...", so a results file reads the same on any machine and can be kept beside a study."""
+    from ..weights.registry import cache_dir
+
     if isinstance(value, dict):
-        return {k: portable(v, out) for k, v in value.items()}
+        return {portable(k, out): portable(v, out) for k, v in value.items()}
     if isinstance(value, list):
         return [portable(v, out) for v in value]
     if isinstance(value, str) and value.startswith("/"):
-        for root in (Path(out).resolve(), Path(__file__).resolve().parents[2]):
+        for root, prefix in ((Path(out).resolve(), ""), (Path(__file__).resolve().parents[2], ""),
+                             (cache_dir().resolve(), "{models cache}/")):
             if value == str(root) or value.startswith(str(root) + "/"):
-                return os.path.relpath(value, root)
+                return prefix + os.path.relpath(value, root)
     return value
 
 
