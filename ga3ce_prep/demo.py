@@ -61,7 +61,7 @@ def demo(out: str, rooms: int, sessions_per_room: int, frames_per_session: int, 
     exp = demo_experiment(rooms, sessions_per_room, frames_per_session, transfer_rooms, epochs, seed)
     root = Path(out)
     seen, = exp.worlds
-    transfer_world = next(iter(exp.transfer), None)
+    transfer_world = next(iter(exp.transfer), "")   # "": no transfer world
     worlds = {**exp.worlds, **exp.transfer}
     t_all = time.perf_counter()
 

@@ -124,8 +124,8 @@ def object_attention(model: GA3CE, ds: ContextDataset, target: np.ndarray, batch
     null, objects, on_target, per_other, top, chance = [], [], [], [], [], []
     for idx in BucketBatchSampler(ds.obj_count, batch_size, shuffle=False).batches():
         b = ds.batch(idx, n_max)
-        _, w = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
-        w = w.cpu().numpy().astype(np.float64)                          # (B, 1 + S)
+        _, weights = model.object_weights(*(t.to(device) for t in (b.view, b.pose, b.head_pos, b.objects, b.mask)))
+        w = weights.cpu().numpy().astype(np.float64)                    # (B, 1 + S)
         mask = b.mask.numpy().astype(bool)[:, : w.shape[1] - 1]
         obj = np.where(mask, w[:, 1:], 0.0)
         null.append(w[:, 0])
