@@ -194,7 +194,8 @@ def test_evaluate_reports_model_and_baselines(store, tmp_path):
     assert list(written) == ["store", "split", "checkpoint", "epoch", "no_objects_checkpoint", "compared_checkpoints",
                              "labels", "config", "dataset", "n_frames", "frames", "head_sources",
                              "head_fallback_frames", "snap_cone_deg", "head_from_pose_frames", "snapped_frames",
-                             "methods", "scene_columns", "paper_rows", "beats", "ratio_to_prior", "cdf_png"]
+                             "methods", "scene_columns", "paper_rows", "beats", "ratio_to_prior", "attention",
+                             "cdf_png"]                                      # attention added since
     assert list(written["methods"]["model"]) == ["n", "mae3d", "mae2d", "median3d", "front", "back", "per_scene",
                                                  "at_object", "elsewhere"]          # the last two added since
     assert (tmp_path / "e.json").read_text() == json.dumps(r.to_json(), indent=2, default=float)

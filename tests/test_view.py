@@ -327,7 +327,7 @@ def test_the_web_viewer_shows_the_recording_in_headless_chromium(store, tmp_path
         page = rerun_web_viewer(url, len(s), tmp_path / "viewer.rrd")
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        out, err = proc.communicate(timeout=120)   # under a full parallel suite it took more than 30 s once
     assert page.ready, (page.values.get("message"), page.errors[:5])
     assert page.values["panicked"] is False and page.values["message"] == ""   # no crash, no error page
     assert proc.returncode == 0 and "stopped" in err
