@@ -316,6 +316,7 @@ def test_the_web_viewer_shows_the_recording_in_headless_chromium(store, tmp_path
     proc = subprocess.Popen([sys.executable, "-m", "ga3ce_prep.cli", "view", str(path), "-c", str(ckpt), "--serve",
                              "--web-port", str(web), "--grpc-port", str(grpc)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    page = None
     try:
         url = None
         for line in proc.stderr:
@@ -324,10 +325,16 @@ def test_the_web_viewer_shows_the_recording_in_headless_chromium(store, tmp_path
                 url = m[1]
                 break
         assert url, proc.communicate(timeout=10)
-        page = rerun_web_viewer(url, len(s), tmp_path / "viewer.rrd")
+        page = rerun_web_viewer(url, len(s), tmp_path / "viewer.rrd", timeout=240.0)
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=120)   # under a full parallel suite it took more than 30 s once
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:   # a failure above (page None) is the one to report
+            proc.kill()
+            out, err = proc.communicate()
+            if page is not None:
+                pytest.fail(f"`view --serve` did not stop within 60 s of Ctrl-C: {err[-500:]}")
     assert page.ready, (page.values.get("message"), page.errors[:5])
     assert page.values["panicked"] is False and page.values["message"] == ""   # no crash, no error page
     assert proc.returncode == 0 and "stopped" in err
