@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import signal
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -310,6 +311,9 @@ class Sink:
                              "write it with --save FILE.rrd and open it where there is one, or use --serve") from None
         if self.serve:
             click.echo(f"serving the web viewer at {url} (Ctrl-C stops it)", err=True)
+            # Ctrl-C stops it also where the process started with SIGINT ignored (a background job of a
+            # script, a test runner's worker): Python then installs no handler of its own
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             try:
                 while True:
                     time.sleep(1)

@@ -315,7 +315,9 @@ def test_the_web_viewer_shows_the_recording_in_headless_chromium(store, tmp_path
     web, grpc = free_port(), free_port()
     proc = subprocess.Popen([sys.executable, "-m", "ga3ce_prep.cli", "view", str(path), "-c", str(ckpt), "--serve",
                              "--web-port", str(web), "--grpc-port", str(grpc)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            # started as a script's background job is, SIGINT ignored: Ctrl-C must still stop it
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     page = None
     try:
         url = None
