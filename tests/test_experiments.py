@@ -1,6 +1,7 @@
 """Experiments as objects (ga3ce_prep/experiments): a World made once, arms trained unless done,
 scores that match an evaluation of the same checkpoint, and one results file that names its
 conditions."""
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -12,9 +13,12 @@ from click.testing import CliRunner
 from ga3ce_prep.errors import ConfigError
 from ga3ce_prep.experiments import Arm, Experiment, World, format_results, mae_table, run_experiment
 from ga3ce_prep.experiments.cli import experiment as experiment_cli
-from ga3ce_prep.experiments.named import EXPERIMENTS, demo_experiment
+from ga3ce_prep.experiments.named import EXPERIMENTS, at_last_epoch, demo_experiment
+from ga3ce_prep.files import file_sha256
+from ga3ce_prep.store import open_store
 from ga3ce_prep.testing.worlds import SMALL
 from ga3ce_prep.train import evaluate
+from ga3ce_prep.train.dataset import store_fingerprint
 from ga3ce_prep.train.checkpoint import CheckpointError
 
 TINY = World(rooms=3, sessions=3, frames=2, seed=3, width=160, overrides=tuple(SMALL))
@@ -81,6 +85,28 @@ def test_a_rerun_trains_nothing_and_a_changed_recipe_is_refused(done):
         run_experiment(tiny(arms=(Arm("full", recipe={"lr": 1e-3}),)), out, progress=False)
     # the ours arm's g0 is its no-objects twin, weight for weight
     assert (runs / "ours" / "seed0" / "g0" / "best.pt").is_file()
+
+
+def test_the_last_epoch_is_scored_on_the_same_runs(done):
+    """at_last_epoch scores each run's last.pt in the experiment's own run folders: nothing trains
+    again, and the score file is keyed by last.pt's bytes, not best.pt's."""
+    out, r = done
+    runs = out / "runs" / "tiny"
+    before = {p: p.stat().st_mtime_ns for p in runs.rglob("*.pt")}
+    last = run_experiment(at_last_epoch(tiny()), out, progress=False)
+    assert {p: p.stat().st_mtime_ns for p in runs.rglob("*.pt")} == before
+    assert not (out / "runs" / "tiny-last" / "w").exists()
+    assert (out / "runs" / "tiny-last" / "results.json").is_file() and last["checkpoint"] == "last"
+    s = next(s for s in last["scores"] if s["arm"] == "full" and s["seed"] == 0 and s["scored_on"] == "w")
+    run = runs / "w" / "full" / "seed0"
+    direct = evaluate(str(out / "w.zarr"), run / "last.pt", split="test", cdf_path=None, no_objects=None, compare={})
+    assert s["mae3d"] == pytest.approx(direct.methods["model"].mae3d, abs=1e-9)
+    fingerprint = store_fingerprint(open_store(out / "w.zarr"))
+    key = hashlib.sha256(f"{file_sha256(run / 'last.pt')}|{fingerprint}|test".encode()).hexdigest()[:16]
+    assert json.loads((run / f"scored-test-{key}.json").read_text())["mae3d"] == s["mae3d"]
+    assert "last epoch scored" in format_results(last) and "last epoch scored" not in format_results(r)
+    with pytest.raises(ConfigError, match="checkpoint"):
+        tiny(checkpoint="median")
 
 
 def test_part_of_an_experiment_runs_by_its_worlds():

@@ -62,6 +62,10 @@ class Experiment:
     transfer: dict[str, World] = field(default_factory=dict)  # worlds only scored on, by name
     recipe: dict[str, Any] = field(default_factory=dict)   # TrainConfig fields of every arm
     base: str = "ga3ce"                                     # the design the ablation switches apply to
+    # the checkpoint scored: "best" (the epoch of the lowest validation 3D MAE) or "last" (the end of
+    # the schedule: no arm gains from a noisier validation curve)
+    checkpoint: str = "best"
+    runs: str = ""                                          # whose run folders it trains in ("": its own)
 
     def __post_init__(self) -> None:
         from ..train.ablate import BY_NAME
@@ -73,6 +77,8 @@ class Experiment:
             raise ConfigError(f"experiment {self.name}: two arms share a folder ({folders}); name them")
         if set(self.worlds) & set(self.transfer):
             raise ConfigError(f"experiment {self.name}: a world is both trained on and transfer")
+        if self.checkpoint not in ("best", "last"):
+            raise ConfigError(f"experiment {self.name}: checkpoint must be best or last, got {self.checkpoint!r}")
 
     def with_seeds(self, seeds: tuple[int, ...]) -> Experiment:
         return dataclasses.replace(self, seeds=tuple(seeds))
@@ -98,7 +104,7 @@ class Experiment:
         return Path(out) / f"{world}.zarr"
 
     def run_dir(self, out: Path, world: str, arm: Arm, seed: int) -> Path:
-        return Path(out) / "runs" / self.name / world / arm.folder / f"seed{seed}"
+        return Path(out) / "runs" / (self.runs or self.name) / world / arm.folder / f"seed{seed}"
 
     def results_path(self, out: Path) -> Path:
         return Path(out) / "runs" / self.name / "results.json"
@@ -222,15 +228,17 @@ def run_experiment(exp: Experiment, out: str | Path, progress: bool = True, work
                 twin = exp.run_dir(out, world, Arm("no-objects"), seed)
                 echo(f"  {world} / {arm.folder} / seed {seed}: {run}")
                 best = ensure_trained(cfg, twin=twin)
+                scored = best if exp.checkpoint == "best" else run / "last.pt"
                 curve = training_curve(run)
                 recipe = {k: v for k, v in cfg.to_dict().items() if k not in ("store", "out", "seed", "progress")}
                 arms[arm.folder] = {"row": arm.row, "design": cfg.model.method,
                                     "label": row_label(ab, ModelConfig.for_method(exp.base)), "config": recipe}
                 for on, split in [(world, exp.split), *((t, "test") for t in exp.transfer)]:
-                    s = ensure_scored(stores[on], best, split, threads=cfg.threads)
+                    s = ensure_scored(stores[on], scored, split, threads=cfg.threads)
                     scores.append({"world": world, "arm": arm.folder, "seed": seed, "scored_on": on, "split": split,
                                    "run": str(run), **s, "curve": curve})
     results = {"experiment": exp.name, "question": exp.question, "split": exp.split, "seeds": list(exp.seeds),
+               "checkpoint": exp.checkpoint,
                "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "seconds": round(time.perf_counter() - t0, 1),
                **conditions,
                "worlds": {n: _world_record(w, stores[n]) for n, w in exp.worlds.items()},
@@ -262,6 +270,8 @@ def format_results(results: dict[str, Any]) -> str:
     objects with its interval; then the machine and the code."""
     arms = results["arms"]
     lines = [f"{results['experiment']}: {results['question']}"]
+    if results.get("checkpoint", "best") == "last":
+        lines.append("(each run's last epoch scored, not its best validation epoch)")
     for (world, on), cell in mae_table(results).items():
         w = results["worlds"][world] if on == world else results["transfer"][on]
         first = next(s for s in results["scores"] if s["world"] == world and s["scored_on"] == on)
