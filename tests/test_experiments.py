@@ -18,8 +18,8 @@ from ga3ce_prep.files import file_sha256
 from ga3ce_prep.store import open_store
 from ga3ce_prep.testing.worlds import SMALL
 from ga3ce_prep.train import evaluate
-from ga3ce_prep.train.dataset import store_fingerprint
 from ga3ce_prep.train.checkpoint import CheckpointError
+from ga3ce_prep.train.dataset import store_fingerprint
 
 TINY = World(rooms=3, sessions=3, frames=2, seed=3, width=160, overrides=tuple(SMALL))
 TINY_TRANSFER = World(fmt="cad120", preset="transfer", rooms=1, sessions=1, frames=4, seed=3, width=160,
