@@ -222,6 +222,11 @@ def test_a_gain_splits_by_where_the_target_is():
     assert split["at_object"] == (pytest.approx(1 - 17 / 20), 30) and split["elsewhere"] == (pytest.approx(-0.05), 10)
     del r["scores"][0]["target"]
     assert target_gains(r, ["w"], "a", "b") == {}
+    # no target point in the annotation (GAFA's): no frame at an object, so no split
+    r = {"scores": [{**score(a, 0, float("nan"), 12.0), "target": {"at_object": [0, float("nan"), float("nan")],
+                                                                    "elsewhere": [40, m, 20.0]}}
+                    for a, m in (("a", 11.0), ("b", 12.0))]}
+    assert target_gains(r, ["w"], "a", "b") == {}
 
 
 def test_a_results_file_names_no_machine_paths(tmp_path, monkeypatch):

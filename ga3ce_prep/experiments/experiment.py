@@ -324,6 +324,10 @@ def _attention_lines(results: dict[str, Any], world: str) -> list[str]:
     lines = [f"  {'weight (target at an object)':30s} {'null':>5s} {'gazed':>6s} {'other':>6s}  gazed most (uniform)"]
     for arm, rows in by_arm.items():
         m = {k: np.mean([r[k] for r in rows]) for k in ("null", "on_target", "per_other", "target_top", "chance_top")}
+        if not any(r["at_object_frames"] for r in rows):   # no gaze target points (GAFA's annotation)
+            lines.append(f"  {results['arms'][arm]['label']:30s} {m['null']:5.2f}  (no target at an object: "
+                         "the annotation gives no target point)")
+            continue
         lines.append(f"  {results['arms'][arm]['label']:30s} {m['null']:5.2f} {m['on_target']:6.3f} "
                      f"{m['per_other']:6.3f}  {m['target_top']:.0%} ({m['chance_top']:.0%})")
     return lines

@@ -78,7 +78,8 @@ def format_gain(g: dict[str, Any]) -> str:
 def target_gains(results: dict[str, Any], worlds: list[str], arm: str, base: str) -> dict[str, tuple[float, int]]:
     """The gain of `arm` over `base` on the frames whose gaze target is at a stored object and on
     the others (ensure_scored's `target`), pooled over `worlds` and the seeds both have: {group:
-    (gain, frames per seed)}; empty when the scores do not split by target."""
+    (gain, frames per seed)}; empty when the scores do not split by target or no target is at an
+    object (a dataset without gaze target points, as GAFA's)."""
     out: dict[str, tuple[float, int]] = {}
     for group in ("at_object", "elsewhere"):
         num = den = 0.0
@@ -95,4 +96,5 @@ def target_gains(results: dict[str, Any], worlds: list[str], arm: str, base: str
                     num, den = num + n * ma, den + n * mb
             frames += next(iter(rows.values()))["target"][group][0]
         out[group] = (1 - num / den if den else float("nan"), frames)
-    return out
+    # no frame's target at an object: the annotation gives no target point (GAFA's: a direction)
+    return out if out["at_object"][1] else {}
