@@ -100,41 +100,54 @@ def objects_reuse(points_per_side: int = 32) -> Experiment:
         arms=(Arm("pointer-joint"),), seeds=tuple(range(10)))
 
 
-# The calibrated testbed's one free knob: the face's rotation error (ga3ce_prep/pipelines/synthetic-calibrated.yaml)
-HEAD_SIGMAS = (0.0, 2.9, 8.0, 16.0)
-# on GAFA the paper's pose adds less (0.886 of v against 0.675 on GFIE): a wider grid (64 and 90
-# added when 48 left the ratio at 0.856)
-HEAD_SIGMAS_GAFA = (8.0, 16.0, 24.0, 32.0, 48.0, 64.0, 90.0)
-
 # A GAFA-like world: the synthetic GAFA format's knobs (walking people, 2-4 cameras 2.5-6 m away,
 # 45% of fixations off any object), with frames 0.2 s apart as in the GFIE-format world (every
 # third frame of a 15 fps recording), 8 a session: the fewest that give a camera sequence one of
 # GAFA's 7-frame windows, which its validation cut counts
 GAFA_KNOBS = "person: {frame_dt: 0.2}\n"
-# format -> (its calibrated pipeline, knobs, choosing world's rooms x sessions x frames, testbed world's)
-TESTBED_FORMATS: dict[str, tuple[str, str | None, tuple[int, int, int], tuple[int, int, int]]] = {
-    "gfie": ("synthetic-calibrated", None, (48, 4, 15), (24, 3, 20)),
-    # about 3 cameras a session: 20 x 3 x 8 x 3 = 1,440 frames, as the GFIE-format testbed's
-    "gafa": ("synthetic-calibrated-gafa", GAFA_KNOBS, (30, 3, 8), (20, 3, 8)),
+
+
+@dataclasses.dataclass(frozen=True)
+class Testbed:
+    """One format's calibrated testbed: its pipeline, the choosing world the face's rotation error
+    (its one free knob) is chosen on, and the fresh worlds drawn after the choice."""
+
+    pipeline: str                       # the calibrated pipeline
+    knobs: str | None                   # the worlds' knobs over the format's defaults (World.knobs)
+    choosing: tuple[int, int, int]      # the choosing world's rooms x sessions x frames
+    size: tuple[int, int, int]          # each testbed world's
+    head_sigmas: tuple[float, ...]      # the calibration's grid of face rotation errors, degrees per axis
+    seeds: tuple[int, ...]              # the testbed worlds' seeds
+
+
+TESTBEDS: dict[str, Testbed] = {
+    "gfie": Testbed("synthetic-calibrated", None, (48, 4, 15), (24, 3, 20), (0.0, 2.9, 8.0, 16.0),
+                    (9401, 9402, 9403)),
+    # about 3 cameras a session: 20 x 3 x 8 x 3 = 1,440 frames, as the GFIE-format testbed's. The
+    # paper's pose adds less on GAFA (0.886 of v against 0.675 on GFIE): a wider grid, 64 and 90
+    # added when 48 left the ratio at 0.856
+    "gafa": Testbed("synthetic-calibrated-gafa", GAFA_KNOBS, (30, 3, 8), (20, 3, 8),
+                    (8.0, 16.0, 24.0, 32.0, 48.0, 64.0, 90.0), (9411, 9412, 9413)),
 }
 
 
 def calibrate(fmt: str = "gfie", sigmas: tuple[float, ...] | None = None) -> Experiment:
     """The no-objects model's validation 3D MAE against v's (the paper's appearance + pose ratio) for
-    each face rotation error, on a choosing world whose seed no reported world shares."""
-    pipeline, knobs, (rooms, sessions, frames), _ = TESTBED_FORMATS[fmt]
-    sigmas = sigmas or (HEAD_SIGMAS_GAFA if fmt == "gafa" else HEAD_SIGMAS)
+    each face rotation error (default: the testbed's grid), on a choosing world whose seed no
+    reported world shares."""
+    tb = TESTBEDS[fmt]
+    rooms, sessions, frames = tb.choosing
 
     def world(sigma: float) -> World:
-        return World(fmt=fmt, rooms=rooms, sessions=sessions, frames=frames, seed=9301, knobs=knobs,
-                     pipeline=pipeline, overrides=(f"stages.pose.params.head_sigma_deg={sigma}",),
+        return World(fmt=fmt, rooms=rooms, sessions=sessions, frames=frames, seed=9301, knobs=tb.knobs,
+                     pipeline=tb.pipeline, overrides=(f"stages.pose.params.head_sigma_deg={sigma}",),
                      data=f"calib-{fmt}")
 
     return Experiment(
         name=f"calibrate-{fmt}",
         question="Which face rotation error gives the no-objects model the paper's appearance + pose ratio?",
-        worlds={f"calib-{fmt}-head{s:g}": world(s) for s in sigmas}, arms=(Arm("no-objects"),), seeds=(0, 1),
-        split="val")
+        worlds={f"calib-{fmt}-head{s:g}": world(s) for s in sigmas or tb.head_sigmas}, arms=(Arm("no-objects"),),
+        seeds=(0, 1), split="val")
 
 
 # the testbed's segmenters: settings over the calibrated pipelines' geometric objects
@@ -150,15 +163,18 @@ def testbed_world(fmt: str, seed: int, objects: str = "geometric") -> World:
     """One calibrated seen-rooms world (GFIE: 24 rooms x 3 sessions x 20 frames; GAFA: 20 x 3 x 8
     with about 3 cameras a session) with `objects`' segmenter; the segmenters of one seed share its
     dataset and stage cache."""
-    pipeline, knobs, _, (rooms, sessions, frames) = TESTBED_FORMATS[fmt]
-    return World(fmt=fmt, rooms=rooms, sessions=sessions, frames=frames, seed=seed, knobs=knobs, pipeline=pipeline,
-                 overrides=TESTBED_OBJECTS[objects], data=f"tb-{fmt}-{seed}")
+    tb = TESTBEDS[fmt]
+    rooms, sessions, frames = tb.size
+    return World(fmt=fmt, rooms=rooms, sessions=sessions, frames=frames, seed=seed, knobs=tb.knobs,
+                 pipeline=tb.pipeline, overrides=TESTBED_OBJECTS[objects], data=f"tb-{fmt}-{seed}")
 
 
-def testbed(fmt: str = "gfie", seeds: tuple[int, ...] = (9401, 9402, 9403)) -> Experiment:
+def testbed(fmt: str = "gfie", seeds: tuple[int, ...] | None = None) -> Experiment:
     """What the objects add on the calibrated testbed: the paper's GA3CE, ours and no objects on
-    fresh seen-rooms worlds (three world seeds), with the geometric segmenter's objects and with the
-    truth's masks, three training seeds; on GFIE also Table 2 on the transfer world with the degraded v."""
+    fresh seen-rooms worlds (the testbed's three world seeds unless `seeds`), with the geometric
+    segmenter's objects and with the truth's masks, three training seeds; on GFIE also Table 2 on
+    the transfer world with the degraded v."""
+    seeds = seeds or TESTBEDS[fmt].seeds
     worlds = ({f"tb-{fmt}-{s}": testbed_world(fmt, s) for s in seeds}
               | {f"tb-{fmt}-{s}-truth": testbed_world(fmt, s, "truth") for s in seeds})
     return Experiment(
@@ -217,9 +233,9 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     calibrate(),
     calibrate("gafa"),
     testbed(),
-    testbed("gafa", seeds=(9411, 9412, 9413)),
+    testbed("gafa"),
     at_last_epoch(testbed()),
-    at_last_epoch(testbed("gafa", seeds=(9411, 9412, 9413))),
+    at_last_epoch(testbed("gafa")),
     testbed_paper_lr(),
     at_last_epoch(testbed_paper_lr()),
     testbed_objects(),
